@@ -1,0 +1,177 @@
+"""The interaction dataset: episodes of the merge world cut into (T_obs past xy of ego + N cars) -> next xy windows.
+
+Slots: 0 is the ego; 1..N are the other cars, ordered front to back by their x at the episode's start
+(a car keeps its slot for the whole episode). Coordinates are world metres: x along the road, y to the left.
+"""
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from joblib import Parallel, delayed
+
+from data.jobs import UserError, atomic_dir
+from data.policies import sample_policy
+from data.scenarios import Scenario
+
+FORMAT = 1
+SPLITS = ("train", "val", "test")
+ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and M = N + 1)
+    "X": ("f", lambda t, m: (t, m, 2)),
+    "Y": ("f", lambda t, m: (m, 2)),
+    "episode": ("i", lambda t, m: ()),
+    "step": ("i", lambda t, m: ()),
+    "yielding": ("b", lambda t, m: (m,)),
+}
+
+
+def rollout(scenario: Scenario, policy, seed: int, steps: int):
+    """Run one episode; returns states (steps+1, M, 4), yielding (steps+1, M), the world (ends early on a collision)."""
+    world = scenario.make_world(seed)
+    states, yielding = [world.z.copy()], [world.yielding.copy()]
+    for _ in range(steps):
+        hits = world.step(policy(world))
+        states.append(world.z.copy())
+        yielding.append(world.yielding.copy())
+        if hits:
+            break
+    return np.array(states), np.array(yielding), world
+
+
+def windows(xy, yielding, t_obs: int):
+    """All (X (n, t_obs, M, 2), Y (n, M, 2), last observed step (n,), yielding at it (n, M)) of one episode."""
+    last = np.arange(t_obs - 1, len(xy) - 1)
+    X = np.stack([xy[t - t_obs + 1 : t + 1] for t in last]) if len(last) else np.zeros((0, t_obs) + xy.shape[1:])
+    return X, xy[last + 1], last, yielding[last]
+
+
+def episode(scenario, policy_ranges, seed, steps, t_obs):
+    """One seeded episode with a sampled exploratory ego: its windows and what happened in it."""
+    rng = np.random.default_rng([seed, 1])
+    world0 = scenario.make_world(seed)
+    policy = sample_policy(rng, scenario.y_ref, float(world0.z[1:, 3].mean()), policy_ranges)
+    states, yielding, world = rollout(scenario, policy, seed, steps)
+    X, Y, last, y_flags = windows(states[..., :2], yielding, t_obs)
+    stats = {"collided": bool(world.collisions), "attempts": policy.attempts, "any_yield": bool(yielding.any()),
+             "merged": bool(world.road.lane_of(world.z[0, 1]) == world.road.lane_of(scenario.y_ref))}
+    return X, Y, last, y_flags, stats
+
+
+def build(scenario: Scenario, policy_ranges: dict, episodes: int, steps: int, t_obs: int, seed: int,
+          split_fractions=(0.8, 0.1, 0.1), n_jobs: int = 1):
+    """Roll `episodes` seeded episodes out and split their windows train/val/test by episode."""
+    seeds = np.random.SeedSequence(seed).generate_state(episodes)
+    results = Parallel(n_jobs=n_jobs)(
+        delayed(episode)(scenario, policy_ranges, int(s), steps, t_obs) for s in seeds)
+    order = np.random.default_rng(seed).permutation(episodes)
+    n_train = int(round(split_fractions[0] * episodes))
+    n_val = int(round(split_fractions[1] * episodes))
+    which = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+    splits = {}
+    for name, eps in which.items():
+        eps = np.sort(eps)
+        parts = [results[e] for e in eps]
+        splits[name] = {
+            "X": np.concatenate([p[0] for p in parts]).astype(np.float32),
+            "Y": np.concatenate([p[1] for p in parts]).astype(np.float32),
+            "episode": np.concatenate([np.full(len(p[0]), e) for e, p in zip(eps, parts)]).astype(np.int32),
+            "step": np.concatenate([p[2] for p in parts]).astype(np.int32),
+            "yielding": np.concatenate([p[3] for p in parts]).astype(bool),
+        }
+    return splits, [r[4] for r in results]
+
+
+def summarize(stats: list) -> dict:
+    """Episode counts and, over every probe that started with a closed gap, the fraction that opened it."""
+    attempts = [a for s in stats for a in s["attempts"]]
+    closed = [a for a in attempts if not a[0]]
+    return {
+        "episodes": len(stats),
+        "collisions": int(sum(s["collided"] for s in stats)),
+        "merged": int(sum(s["merged"] for s in stats)),
+        "episodes_with_yield": int(sum(s["any_yield"] for s in stats)),
+        "nudges": len(closed),
+        "nudges_opened_gap": int(sum(a[1] for a in closed)),
+        "nudge_open_frac": float(np.mean([a[1] for a in closed])) if closed else 0.0,
+    }
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def save(root: Path, splits: dict, meta: dict) -> dict:
+    """Write {train,val,test}.npz and meta.json into `root` atomically (a failed write leaves any old dataset intact)."""
+    with atomic_dir(root) as tmp:
+        files = {}
+        for name, arrays in splits.items():
+            np.savez_compressed(tmp / f"{name}.npz", **arrays)
+            files[name] = {"windows": int(len(arrays["X"])), "sha256": _sha256(tmp / f"{name}.npz"),
+                           "episodes": sorted(int(e) for e in np.unique(arrays["episode"]))}
+        meta = {**meta, "format": FORMAT, "splits": files}
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    return meta
+
+
+def read_meta(root: Path) -> dict:
+    """The dataset's meta.json, validated; a missing or corrupt one is a UserError naming the file."""
+    path = Path(root) / "meta.json"
+    if not path.exists():
+        raise UserError(f"dataset not found: {path} is missing (build it with `make-dataset dataset.name={Path(root).name}`)")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(f"corrupt dataset meta file {path}: {e}") from None
+    for key in ("format", "T_obs", "N", "splits"):
+        if key not in meta:
+            raise UserError(f"corrupt dataset meta file {path}: key '{key}' missing")
+    if meta["format"] != FORMAT:
+        raise UserError(f"{path}: dataset format {meta['format']} is not {FORMAT}; rebuild it with make-dataset")
+    return meta
+
+
+def load(root, split: str) -> dict:
+    """Arrays of one split, checked against meta.json (checksum, shapes, dtypes, finiteness); errors name the file."""
+    root = Path(root)
+    meta = read_meta(root)
+    if split not in meta["splits"]:
+        raise UserError(f"{root / 'meta.json'}: no split '{split}' (have {sorted(meta['splits'])})")
+    path = root / f"{split}.npz"
+    if not path.exists():
+        raise UserError(f"dataset file missing: {path} (rebuild with make-dataset)")
+    if _sha256(path) != meta["splits"][split]["sha256"]:
+        raise UserError(f"{path} does not match its meta.json checksum (corrupt or from another build); rebuild with make-dataset")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except Exception as e:  # numpy raises several types for a damaged zip
+        raise UserError(f"cannot read dataset file {path}: {e}") from None
+    t_obs, m = meta["T_obs"], meta["N"] + 1
+    n = meta["splits"][split]["windows"]
+    for key, (kind, shape) in ARRAYS.items():
+        if key not in arrays:
+            raise UserError(f"{path}: array '{key}' missing")
+        a = arrays[key]
+        want = (n,) + shape(t_obs, m)
+        if a.shape != want or a.dtype.kind != kind:
+            raise UserError(f"{path}: array '{key}' has shape {a.shape} dtype {a.dtype}, expected {want} kind '{kind}'")
+        if kind == "f" and not np.isfinite(a).all():
+            raise UserError(f"{path}: array '{key}' holds NaN or infinite values")
+    return arrays
+
+
+def make(cfg_dataset, scenario, root: Path, config_yaml: str) -> dict:
+    """Build and save the dataset described by `cfg_dataset`; returns meta (with build time and statistics)."""
+    t0 = time.perf_counter()
+    splits, stats = build(scenario, dict(cfg_dataset.policy), cfg_dataset.episodes, cfg_dataset.steps,
+                          cfg_dataset.T_obs, cfg_dataset.seed, tuple(cfg_dataset.split), cfg_dataset.n_jobs)
+    meta = {
+        "name": cfg_dataset.name, "seed": cfg_dataset.seed, "T_obs": cfg_dataset.T_obs, "T_pred": 1,
+        "N": int(splits["train"]["X"].shape[2] - 1), "dt": scenario.params.dt, "units": "m",
+        "slots": "0 = ego; 1..N = other cars front to back by x at the episode start",
+        "shapes": {"X": "(n, T_obs, N+1, 2) past xy", "Y": "(n, N+1, 2) next xy", "episode": "(n,)",
+                   "step": "(n,) last observed step", "yielding": "(n, N+1) hidden: car brakes for the ego"},
+        "stats": summarize(stats), "build_s": round(time.perf_counter() - t0, 2), "config": config_yaml,
+    }
+    return save(root, splits, meta)

@@ -1,0 +1,47 @@
+"""Driver behaviours of the other cars: IDM car following, yielding to an intruding ego, MOBIL lane changes."""
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class IDMDriver:
+    """One driver's named parameters (SI units); `eta_coop` is hidden from observers and shows only in behaviour."""
+
+    v0: float = 7.0  # desired speed (m/s)
+    T: float = 0.4  # desired time headway (s)
+    s0: float = 1.2  # minimum bumper-to-bumper gap (m)
+    a_max: float = 2.0  # maximum acceleration (m/s^2)
+    b: float = 2.0  # comfortable deceleration (m/s^2)
+    delta: float = 4.0  # free-road acceleration exponent (-)
+    eta_coop: float = 0.5  # probability of yielding to an ego that intrudes (-), latched once per episode
+    d_react: float = 2.8  # ego-centre distance from this driver's lane centre that counts as intruding (m)
+    view: float = 20.0  # how far ahead an intruder is noticed (m)
+    reaction_delay: float = 0.6  # time from noticing an intrusion to braking for it (s)
+    b_yield: float = 2.5  # cap on braking while yielding (m/s^2)
+    politeness: float = 0.3  # MOBIL weight on the other drivers' acceleration change (-)
+    a_gain: float = 0.2  # MOBIL minimum own acceleration gain to change lane (m/s^2)
+    b_safe: float = 2.0  # MOBIL largest braking a lane change may impose on the new follower (m/s^2)
+
+    def desired_gap(self, v, dv):
+        """IDM desired bumper gap s* (m) at speed v and approach rate dv = v - v_leader (m/s)."""
+        return self.s0 + np.maximum(0.0, v * self.T + v * dv / (2.0 * np.sqrt(self.a_max * self.b)))
+
+    def acceleration(self, v, gap=None, v_lead=None):
+        """IDM acceleration (m/s^2) behind a leader `gap` metres ahead driving at v_lead; free road if gap is None."""
+        free = self.a_max * (1.0 - (max(v, 0.0) / self.v0) ** self.delta)
+        if gap is None:
+            return free
+        s = max(gap, 0.1)
+        return free - self.a_max * (self.desired_gap(v, v - v_lead) / s) ** 2
+
+    def equilibrium_gap(self, v):
+        """Bumper gap (m) at which this driver follows a leader steadily at speed v (< v0)."""
+        return self.desired_gap(v, 0.0) / np.sqrt(1.0 - (v / self.v0) ** self.delta)
+
+
+def sample_driver(rng: np.random.Generator, ranges: dict, **fixed) -> IDMDriver:
+    """A driver with each parameter drawn uniformly from `ranges[name] = [low, high]`, then `fixed` values on top."""
+    params = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in sorted(ranges.items())}
+    params.update(fixed)
+    return IDMDriver(**params)
