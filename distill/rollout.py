@@ -1,0 +1,54 @@
+"""The paper's Remark 2 recursion over T_p steps, and its exact chain rule from local Jacobians.
+
+A predictor maps a window (B, T_obs, M, 2) of past xy (metres, ego in slot 0) to the next xy (B, M, 2).
+Over the horizon the ego slot is filled from the candidate plan, the other slots from the predictor's own output.
+"""
+import numpy as np
+
+
+def _xp(a):
+    """numpy or torch, whichever `a` belongs to, so one recursion serves training (torch) and planning (numpy)."""
+    if type(a).__module__.startswith("torch"):
+        import torch
+
+        return torch
+    return np
+
+
+def rollout(phi, history, ego_future):
+    """Predicted xy of every slot (B, T_p, M, 2): history (B, T_obs, M, 2), ego_future (B, T_p, 2) = ego xy at 1..T_p."""
+    xp = _xp(history)
+    window, out = history, []
+    for tau in range(ego_future.shape[1]):
+        nxt = phi(window)
+        nxt = xp.concatenate([ego_future[:, tau, None, :], nxt[:, 1:]], axis=1)
+        out.append(nxt)
+        window = xp.concatenate([window[:, 1:], nxt[:, None]], axis=1)
+    return xp.stack(out, axis=1)
+
+
+def rollout_jacobian(phi_jac, history, ego_future):
+    """Rollout values (T_p, M, 2) and their derivative w.r.t. the ego plan (T_p, M, 2, T_p, 2), for one planning state.
+
+    phi_jac(window (1, T_obs, M, 2)) -> (next (1, M, 2), J (1, M*2, T_obs*M*2)) supplies the local values and
+    Jacobians (autodiff, analytic, a surrogate, or differences); the chain rule through the window shift is exact.
+    """
+    history = np.asarray(history, dtype=float)
+    ego_future = np.asarray(ego_future, dtype=float)
+    t_obs, m, _ = history.shape
+    t_p = len(ego_future)
+    window = history.copy()
+    dwindow = np.zeros((t_obs, m, 2, t_p, 2))  # d window / d ego_future
+    values, grads = np.zeros((t_p, m, 2)), np.zeros((t_p, m, 2, t_p, 2))
+    for tau in range(t_p):
+        nxt, J = phi_jac(window[None])
+        nxt = np.asarray(nxt, dtype=float).reshape(m, 2).copy()
+        J = np.asarray(J, dtype=float).reshape(m * 2, t_obs * m * 2)
+        dnext = (J @ dwindow.reshape(t_obs * m * 2, t_p * 2)).reshape(m, 2, t_p, 2)
+        nxt[0] = ego_future[tau]
+        dnext[0] = 0.0
+        dnext[0, 0, tau, 0] = dnext[0, 1, tau, 1] = 1.0
+        values[tau], grads[tau] = nxt, dnext
+        window = np.concatenate([window[1:], nxt[None]], axis=0)
+        dwindow = np.concatenate([dwindow[1:], dnext[None]], axis=0)
+    return values, grads

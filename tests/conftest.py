@@ -1,0 +1,33 @@
+"""Shared fixtures: a temporary MLflow store for every test session and a tiny dataset built once."""
+import os
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from data.jobs import CONF_DIR
+
+
+def compose_cfg(config_name: str, overrides=()):
+    """A Hydra config composed the way the console scripts compose it."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name, overrides=list(overrides))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def mlflow_store(tmp_path_factory):
+    """Every job in the tests logs to a throw-away SQLite store, never the user's mlflow.db."""
+    db = tmp_path_factory.mktemp("mlflow") / "mlflow.db"
+    os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{db}"
+    os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
+    return os.environ["MLFLOW_TRACKING_URI"]
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """Root folder of a tiny interaction dataset (train/val/test.npz + meta.json), built once per session."""
+    from data.cli import run
+
+    out = tmp_path_factory.mktemp("data")
+    run(compose_cfg("make_dataset", ["dataset=tiny", f"out_dir={out}", "plot_episodes=0"]))
+    return out / "tiny"
