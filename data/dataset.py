@@ -61,13 +61,15 @@ def episode(scenario, policy_ranges, seed, steps, t_obs):
 def build(scenario: Scenario, policy_ranges: dict, episodes: int, steps: int, t_obs: int, seed: int,
           split_fractions=(0.8, 0.1, 0.1), n_jobs: int = 1):
     """Roll `episodes` seeded episodes out and split their windows train/val/test by episode."""
-    seeds = np.random.SeedSequence(seed).generate_state(episodes)
-    results = Parallel(n_jobs=n_jobs)(
-        delayed(episode)(scenario, policy_ranges, int(s), steps, t_obs) for s in seeds)
     order = np.random.default_rng(seed).permutation(episodes)
     n_train = int(round(split_fractions[0] * episodes))
     n_val = int(round(split_fractions[1] * episodes))
     which = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+    if min(len(e) for e in which.values()) == 0:
+        raise UserError(f"dataset.episodes={episodes} leaves a split empty with dataset.split={list(split_fractions)}")
+    seeds = np.random.SeedSequence(seed).generate_state(episodes)
+    results = Parallel(n_jobs=n_jobs)(
+        delayed(episode)(scenario, policy_ranges, int(s), steps, t_obs) for s in seeds)
     splits = {}
     for name, eps in which.items():
         eps = np.sort(eps)

@@ -21,6 +21,7 @@ class IDMDriver:
     b_yield: float = 2.5  # cap on braking while yielding (m/s^2)
     politeness: float = 0.3  # MOBIL weight on the other drivers' acceleration change (-)
     a_gain: float = 0.2  # MOBIL minimum own acceleration gain to change lane (m/s^2)
+    a_bias: float = 1.5  # MOBIL keep-right bias: extra gain a move to the left must bring (m/s^2)
     b_safe: float = 2.0  # MOBIL largest braking a lane change may impose on the new follower (m/s^2)
 
     def desired_gap(self, v, dv):

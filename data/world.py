@@ -161,7 +161,7 @@ class World:
         if old_f is not None and old_f > 0:
             of_gain = self.idm_to(old_f, self.leader(old_f, lane, exclude=(j,))) - self.idm_to(old_f, j)
         gain = self.idm_to(j, new_leader) - a_now + d.politeness * (nf_gain + of_gain)
-        return new if gain > d.a_gain else lane
+        return new if gain > d.a_gain + d.a_bias else lane
 
     def step(self, ego_u):
         """Advance dt: the ego applies ego_u = [delta, a]; returns the indices pairs that collided this step."""

@@ -1,0 +1,82 @@
+"""Drivers and the merge world: IDM equilibrium, no collisions in plain traffic, yielding vs stubborn drivers."""
+import numpy as np
+import pytest
+from hydra.utils import instantiate
+
+from conftest import compose_cfg
+from data.dataset import rollout
+from data.drivers import IDMDriver
+from data.policies import ProbePolicy
+from data.world import Road, World, overlap
+
+
+def scenario(name, **overrides):
+    return instantiate(compose_cfg("make_dataset", [f"scenario={name}"] + [f"scenario.{k}={v}" for k, v in overrides.items()]).scenario,
+                       _convert_="all")
+
+
+def test_idm_equilibrium_gap_is_a_rest_point_and_is_reached():
+    d = IDMDriver(v0=7.0, T=0.4, s0=1.2)
+    s_eq = d.equilibrium_gap(5.0)
+    assert d.acceleration(5.0, s_eq, 5.0) == pytest.approx(0.0, abs=1e-9)
+    road = Road(lanes=2)
+    leader = IDMDriver(v0=5.0)
+    z = np.array([[-200.0, 0.0, 0.0, 0.0], [50.0, 4.0, 0.0, 5.0], [30.0, 4.0, 0.0, 5.0]])  # ego parked far behind
+    world = World(road, z, [leader, d], np.zeros(3, bool))
+    for _ in range(600):
+        world.step([0.0, 0.0])
+    gap = world.z[1, 0] - world.z[2, 0] - road.car_length
+    assert gap == pytest.approx(s_eq, rel=0.02)
+    assert world.z[2, 3] == pytest.approx(5.0, rel=0.01)
+
+
+def test_plain_traffic_never_collides():
+    sc = scenario("random")
+    for seed in range(12):
+        states, _, world = rollout(sc, ProbePolicy(y_ref=sc.y_ref, keep_lane=True, v_target=4.0), seed, 80)
+        assert world.collisions == [], f"seed {seed}"
+        assert len(states) == 81
+
+
+def test_overlap_detects_touching_bodies_only():
+    road = Road()
+    a = np.array([0.0, 0.0, 0.0, 0.0])
+    assert overlap(a, np.array([3.5, 0.0, 0.0, 0.0]), road)
+    assert not overlap(a, np.array([3.7, 0.0, 0.0, 0.0]), road)
+    assert not overlap(a, np.array([0.0, 1.7, 0.0, 0.0]), road)
+    assert overlap(a, np.array([2.0, 1.5, 0.3, 0.0]), road)
+
+
+def x_behind_gap(sc, nudge: bool):
+    """Position (m) after 6 s of the car behind the ego's slot (slot 3), with the ego nudging or staying."""
+    policy = ProbePolicy(y_ref=sc.y_ref, keep_lane=not nudge, t_start=0.2, y_nudge=1.6, hold=100.0, v_target=5.0)
+    states, yielding, world = rollout(sc, policy, seed=0, steps=30)
+    assert world.collisions == []
+    return states[-1, 3, 0], yielding
+
+
+def test_yielding_driver_opens_a_gap_when_nudged():
+    sc = scenario("two_lane")
+    stay, _ = x_behind_gap(sc, nudge=False)
+    nudged, yielding = x_behind_gap(sc, nudge=True)
+    assert yielding[:, 3].any() and not yielding[:, [1, 2]].any()  # cars ahead of the ego never yield
+    assert nudged < stay - 1.5
+
+
+def test_stubborn_driver_holds_its_gap_when_nudged():
+    sc = scenario("two_lane")
+    sc.drivers = [dict(d, eta_coop=0.0) for d in sc.drivers]
+    stay, _ = x_behind_gap(sc, nudge=False)
+    nudged, yielding = x_behind_gap(sc, nudge=True)
+    assert not yielding.any()
+    assert nudged == pytest.approx(stay, abs=1e-6)
+
+
+def test_three_lane_yielder_moves_left_when_nudged():
+    sc = scenario("three_lane")
+    policy = ProbePolicy(y_ref=sc.y_ref, t_start=0.2, y_nudge=1.6, hold=100.0)
+    states, _, world = rollout(sc, policy, seed=0, steps=40)
+    assert world.collisions == []
+    assert states[-1, 3, 1] > 6.0  # the yielding car changed into the leftmost lane (centre y = 8 m)
+    keep = rollout(sc, ProbePolicy(y_ref=sc.y_ref, keep_lane=True), seed=0, steps=40)[0]
+    assert np.abs(keep[:, 1:, 1] - 4.0).max() < 0.1  # without the nudge nobody moves
