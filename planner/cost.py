@@ -1,0 +1,58 @@
+"""The paper's cost J = Phi_1(Delta) + Phi_2(alpha) + Phi_3(Z) as exact quadratic forms (Table I weights)."""
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy import sparse
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Table I: lambda_div (1/m^2), lambda_v (s^2/m^2), lambda_delta, lambda_ddelta (1/rad^2), lambda_a, lambda_da (s^4/m^2)."""
+
+    lambda_div: float = 1.0
+    lambda_v: float = 1.0
+    lambda_delta: float = 0.6
+    lambda_a: float = 0.4
+    lambda_ddelta: float = 0.4
+    lambda_da: float = 0.2
+
+
+class Quadratic(NamedTuple):
+    """f(x) = 1/2 x'Px + q'x + r with P sparse symmetric."""
+
+    P: sparse.csc_matrix
+    q: np.ndarray
+    r: float
+
+    def __call__(self, x):
+        """Value of the form at x."""
+        return float(0.5 * x @ (self.P @ x) + self.q @ x + self.r)
+
+
+def input_cost(T_p, lam, lam_rate, previous):
+    """Phi_1 (or Phi_2): sum lam u(tau)^2 + lam_rate (u(tau) - u(tau-1))^2, u(-1) = `previous` (the last applied input)."""
+    diff = sparse.eye(T_p) - sparse.eye(T_p, k=-1)  # row tau: u(tau) - u(tau-1), with u(-1) moved to the offset
+    e0 = np.zeros(T_p)
+    e0[0] = previous
+    P = 2.0 * (lam * sparse.eye(T_p) + lam_rate * diff.T @ diff)
+    return Quadratic(sparse.csc_matrix(P), -2.0 * lam_rate * (diff.T @ e0), lam_rate * previous**2)
+
+
+def Phi_1(T_p, w: Weights, delta_prev):
+    """Steering effort and rate (rad)."""
+    return input_cost(T_p, w.lambda_delta, w.lambda_ddelta, delta_prev)
+
+
+def Phi_2(T_p, w: Weights, a_prev):
+    """Acceleration effort and jerk (m/s^2)."""
+    return input_cost(T_p, w.lambda_a, w.lambda_da, a_prev)
+
+
+def Phi_3(T_p, w: Weights, y_ref, v_ref):
+    """Lateral deviation from y_ref (m) and speed error from v_ref (m/s) over z(1..T_p); Z stacks [x, y, psi, v]."""
+    S_y = sparse.csc_matrix((np.ones(T_p), (np.arange(T_p), 4 * np.arange(T_p) + 1)), shape=(T_p, 4 * T_p))
+    S_v = sparse.csc_matrix((np.ones(T_p), (np.arange(T_p), 4 * np.arange(T_p) + 3)), shape=(T_p, 4 * T_p))
+    P = 2.0 * (w.lambda_div * S_y.T @ S_y + w.lambda_v * S_v.T @ S_v)
+    q = -2.0 * (w.lambda_div * y_ref * S_y.T @ np.ones(T_p) + w.lambda_v * v_ref * S_v.T @ np.ones(T_p))
+    return Quadratic(sparse.csc_matrix(P), q, T_p * (w.lambda_div * y_ref**2 + w.lambda_v * v_ref**2))

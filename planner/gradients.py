@@ -1,0 +1,127 @@
+"""Gradient sources behind one interface: rollout values of the others and their derivative w.r.t. the ego plan.
+
+Each source offers `values(history, ego_futures)` (B, T_p, M, 2) for a batch of ego plans and
+`jacobian(history, ego_future)` -> values (T_p, M, 2), d values / d ego xy (T_p, M, 2, T_p, 2), metres throughout.
+"""
+import numpy as np
+
+from data.jobs import UserError
+from distill.rollout import rollout, rollout_jacobian
+
+SOURCES = ("teacher", "student", "surrogate", "fd", "cv", "analytic")
+PREDICTORS = ("teacher", "student", "cv", "analytic")
+
+
+class Source:
+    """Values from the predictor's own recursion; subclasses say where the derivative comes from."""
+
+    def __init__(self, name, predictor):
+        self.name, self.predictor = name, predictor
+
+    def values(self, history, ego_futures):
+        """Predicted xy (B, T_p, M, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, M, 2)."""
+        ego_futures = np.asarray(ego_futures, dtype=float)
+        batch = np.broadcast_to(np.asarray(history, dtype=float), (len(ego_futures),) + np.shape(history))
+        return np.asarray(rollout(self.predictor.phi, batch, ego_futures), dtype=float)
+
+
+class ExactLocal(Source):
+    """The predictor's own exact local Jacobians (phi_jac), composed by the rollout chain rule."""
+
+    def jacobian(self, history, ego_future):
+        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2)."""
+        return rollout_jacobian(self.predictor.phi_jac, history, ego_future)
+
+
+class Surrogate(Source):
+    """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule."""
+
+    def __init__(self, name, predictor, surrogate):
+        super().__init__(name, predictor)
+        self.surrogate = surrogate
+
+    def jacobian(self, history, ego_future):
+        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) with the surrogate's local Jacobians."""
+        return rollout_jacobian(lambda w: (self.predictor.phi(w), self.surrogate.jac(w)), history, ego_future)
+
+
+class Autodiff(Source):
+    """Reverse-mode autodiff (torch.func.jacrev) through the whole recursive rollout of the predictor's torch module."""
+
+    def __init__(self, name, predictor):
+        super().__init__(name, predictor)
+        import torch
+
+        self.torch, self.module = torch, predictor.module
+        params = list(getattr(self.module, "parameters", lambda: [])())
+        self.dtype = params[0].dtype if params else torch.float64
+
+    def jacobian(self, history, ego_future):
+        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by autodiff."""
+        torch = self.torch
+        hist = torch.as_tensor(np.asarray(history), dtype=self.dtype)[None]
+
+        def values(ego):
+            out = rollout(self.module, hist, ego[None])[0]
+            return out, out
+
+        with torch.no_grad():  # jacrev builds its own graph; no_grad keeps parameters out of it
+            grads, vals = torch.func.jacrev(values, has_aux=True)(torch.as_tensor(np.asarray(ego_future), dtype=self.dtype))
+        return vals.double().numpy(), grads.double().numpy()
+
+
+class CentralDifferences(Source):
+    """A check: central differences of the predictor's rollout, all 4 T_p perturbed plans in one batch; step h (m)."""
+
+    def __init__(self, name, predictor, h):
+        super().__init__(name, predictor)
+        self.h = h
+
+    def jacobian(self, history, ego_future):
+        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by central differences."""
+        ego_future = np.asarray(ego_future, dtype=float)
+        n = ego_future.size
+        steps = np.eye(n).reshape(n, *ego_future.shape) * self.h
+        batch = np.concatenate([ego_future[None], ego_future + steps, ego_future - steps])
+        out = self.values(history, batch)
+        grads = (out[1:n + 1] - out[n + 1:]) / (2 * self.h)  # (n, T_p, M, 2)
+        return out[0], np.moveaxis(grads, 0, -1).reshape(out.shape[1:] + ego_future.shape)
+
+
+def load_predictor(name, models_dir="models", analytic=None):
+    """A predictor by name: `cv` and `analytic` are built in, `teacher` and `student` come from distill.models."""
+    if name == "cv":
+        from distill.predictors import ConstantVelocity
+
+        return ConstantVelocity()
+    if name == "analytic":
+        from distill.analytic import Analytic
+
+        return Analytic(**(analytic or {}))
+    if name not in PREDICTORS:
+        raise UserError(f"unknown predictor '{name}'; choose one of {', '.join(PREDICTORS)}")
+    try:
+        from distill import models
+    except ImportError as e:
+        raise UserError(f"predictor '{name}' needs distill.models, which is not installed here ({e}); run `distill model={name}`")
+    return models.load(name, models_dir=models_dir)
+
+
+def make_source(gradients, predictor="auto", models_dir="models", fd_step=1e-2, analytic=None):
+    """The gradient source `gradients` over the predictor `predictor` (auto: the source's own, the teacher otherwise)."""
+    if gradients not in SOURCES:
+        raise UserError(f"unknown gradients '{gradients}'; choose one of {', '.join(SOURCES)}")
+    if predictor == "auto":
+        predictor = gradients if gradients in PREDICTORS else "teacher"
+    model = load_predictor(predictor, models_dir, analytic)
+    if gradients == "teacher":
+        return Autodiff(gradients, model)
+    if gradients == "surrogate":
+        try:
+            from surrogate import models as surrogate_models
+        except ImportError as e:
+            raise UserError(f"gradients=surrogate needs the gradient network, which is not available ({e}); run `surrogate`")
+        return Surrogate(gradients, model, surrogate_models.load(models_dir=models_dir))
+    if gradients == "fd":
+        return CentralDifferences(gradients, model, fd_step)
+    return ExactLocal(gradients, model)

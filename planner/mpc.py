@@ -1,0 +1,177 @@
+"""One receding-horizon step: build the MPC about the observation, warm-start from the shifted plan, solve, fall back.
+
+A step never raises for a bad observation, a solver failure or an unsafe result: it returns the shifted previous plan
+(if the predictor still finds it safe) or braking in lane, with the reason.
+"""
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from data import bicycle
+from data.world import Road, steer_to
+from planner import admm, cost, dynamics
+from planner.zstep import ZSTEPS, SQPSettings
+from planner.qp import SolverFailure
+from planner.safety import Safety, b_i
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything a step needs besides the observation, SI units; built from the `planner` config."""
+
+    weights: cost.Weights
+    y_ref: float  # m
+    v_ref: float  # m/s
+    road: Road
+    params: bicycle.BicycleParams
+    T_p: int = 8
+    rho: float = 100.0
+    R: float = 3.8  # r + r_i + eps (m)
+    delta_box: tuple = (-0.5, 0.5)  # rad
+    a_box: tuple = (-4.0, 3.0)  # m/s^2
+    psi_box: tuple = (-0.6, 0.6)  # rad
+    v_box: tuple = (0.0, 10.0)  # m/s
+    y_margin: float = 1.0  # how far the ego's centre may leave the outer lane centres (m)
+    linearize: str = "last_observed"  # or "along_plan"
+    admm: dict = field(default_factory=lambda: {"max_iters": 50, "tol_F": 1e-3, "tol_step": 1e-3})
+    zstep: str = "sqp"
+    sqp: SQPSettings = SQPSettings()
+    osqp: dict = field(default_factory=lambda: {"eps_abs": 1e-6, "eps_rel": 1e-6, "max_iter": 4000})
+    check_tol: float = 0.3  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
+    check_steps: int = 2  # steps of that rollout checked: only its start is ever applied, the rest is replanned
+    brake: float = -3.0  # deceleration of the braking-in-lane fallback (m/s^2)
+
+
+class Observation(NamedTuple):
+    """What the planner sees: ego state z0 = [x, y, psi, v], last applied (delta, a), xy history (T_obs, M, 2)."""
+
+    z0: np.ndarray
+    u_prev: np.ndarray
+    history: np.ndarray
+
+
+class StepResult(NamedTuple):
+    """The control to apply (delta rad, a m/s^2), the plan to warm-start from (None: start cold), and what happened."""
+
+    u: np.ndarray
+    plan: admm.ADMMState
+    J: float
+    iters: int
+    reason: str
+    F_norm: float
+    b_min: float
+    slack: float
+    fallback: str  # "" when the solver's plan was applied
+
+
+def simulate(z0, Delta, alpha, params):
+    """Nonlinear bicycle rollout of the controls: Z (4T_p,) stacking z(1..T_p)."""
+    z, out = np.asarray(z0, float), []
+    for d, a in zip(Delta, alpha):
+        z = bicycle.step(z, [d, a], params)
+        out.append(z)
+    return np.concatenate(out)
+
+
+def shift(plan: admm.ADMMState):
+    """The previous plan one step on: drop the first step, repeat the last (Z by its last state, mu by its last block)."""
+    roll = lambda a, k: np.concatenate([a[k:], a[-k:]])  # noqa: E731
+    return admm.ADMMState(roll(plan.Delta, 1), roll(plan.alpha, 1), roll(plan.Z, 4), roll(plan.mu, 4), plan.zstate)
+
+
+def state_box(s: Settings):
+    """z_min, z_max (4T_p,): x free, y within the road, psi and v boxed."""
+    y_lo, y_hi = -s.y_margin, s.road.centre(s.road.lanes - 1) + s.y_margin
+    lo = np.tile([-np.inf, y_lo, s.psi_box[0], s.v_box[0]], s.T_p)
+    hi = np.tile([np.inf, y_hi, s.psi_box[1], s.v_box[1]], s.T_p)
+    return lo, hi
+
+
+def costs(s: Settings, u_prev):
+    """Phi_1, Phi_2, Phi_3 for this step (the rate terms start from the last applied input)."""
+    return (cost.Phi_1(s.T_p, s.weights, u_prev[0]), cost.Phi_2(s.T_p, s.weights, u_prev[1]),
+            cost.Phi_3(s.T_p, s.weights, s.y_ref, s.v_ref))
+
+
+def J_of(s: Settings, u_prev, Delta, alpha, Z):
+    """The cost J of a plan."""
+    Phi_1, Phi_2, Phi_3 = costs(s, u_prev)
+    return Phi_1(Delta) + Phi_2(alpha) + Phi_3(Z)
+
+
+def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
+    """The step's Problem and the ADMM start: the shifted previous plan, or zero inputs rolled out (cold)."""
+    z0, u_prev = np.asarray(obs.z0, float), np.asarray(obs.u_prev, float)
+    if warm is None:
+        Delta, alpha = np.zeros(s.T_p), np.zeros(s.T_p)
+        start = admm.ADMMState(Delta, alpha, simulate(z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
+    else:
+        start = shift(warm)._replace(zstate=None)
+    plan = (start.Delta, start.alpha, start.Z) if s.linearize == "along_plan" else None
+    dyn = dynamics.linearize(z0, u_prev[0], u_prev[1], s.params, s.T_p, plan)
+    Phi_1, Phi_2, Phi_3 = costs(s, u_prev)
+    lo, hi = state_box(s)
+    safety = Safety(source, obs.history, s.R, s.T_p)
+    prob = admm.Problem(
+        dyn, Phi_1, Phi_2, Phi_3, s.rho,
+        admm.box_qp(Phi_1, dyn.A, s.rho, *s.delta_box, s.osqp),
+        admm.box_qp(Phi_2, dyn.B, s.rho, *s.a_box, s.osqp),
+        ZSTEPS[s.zstep](Phi_3, dyn.C, s.rho, lo, hi, safety, s.sqp, s.osqp),
+    )
+    return prob, start._replace(Z=np.clip(start.Z, lo, hi))
+
+
+def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
+    """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
+    Z = simulate(obs.z0, Delta, alpha, s.params)
+    values = source.values(obs.history, np.reshape(Z, (s.T_p, 4))[None, :, :2])[0]
+    return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf)), Z
+
+
+def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResult:
+    """The shifted previous plan if the predictor still finds it safe, else braking in the current lane.
+
+    Without a finite ego state there is nothing to steer by: the shifted plan is applied unchecked, or straight braking.
+    """
+    z_ok, seen = np.all(np.isfinite(obs.z0)), np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.history))
+    if warm is not None:
+        prev = shift(warm)._replace(zstate=None)
+        b_min, Z = plan_safe(s, obs, source, prev.Delta, prev.alpha) if seen else (np.nan, prev.Z)
+        if not seen or b_min >= -s.check_tol:
+            return StepResult(np.array([prev.Delta[0], prev.alpha[0]]), prev._replace(Z=Z) if z_ok else None,
+                              J_of(s, obs.u_prev, prev.Delta, prev.alpha, Z), 0, "fallback", np.nan, b_min, np.nan,
+                              f"{why}; shifted previous plan")
+    if not z_ok:
+        return StepResult(np.array([0.0, s.brake]), None, np.nan, 0, "fallback", np.nan, np.nan, np.nan,
+                          f"{why}; braking straight")
+    z, Delta, alpha = np.asarray(obs.z0, float), [], []
+    lane_y = s.road.centre(s.road.lane_of(z[1]))
+    for _ in range(s.T_p):
+        Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
+        alpha.append(s.brake if z[3] > 0.0 else 0.0)
+        z = bicycle.step(z, [Delta[-1], alpha[-1]], s.params)
+    Delta, alpha = np.array(Delta), np.array(alpha)
+    Z = simulate(obs.z0, Delta, alpha, s.params)
+    plan = admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p))
+    return StepResult(np.array([Delta[0], alpha[0]]), plan, J_of(s, obs.u_prev, Delta, alpha, Z), 0, "fallback",
+                      np.nan, np.nan, np.nan, f"{why}; braking in lane")
+
+
+def admm_step(s: Settings, obs: Observation, source, warm) -> StepResult:
+    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks."""
+    if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
+        return fallback(s, obs, source, warm, "non-finite observation")
+    try:
+        prob, start = build(s, obs, source, warm)
+        st, solve = admm.admm_solve(prob, start, **s.admm)
+    except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
+        return fallback(s, obs, source, warm, f"solver failure ({e})")
+    if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
+        return fallback(s, obs, source, warm, "non-finite iterate")
+    b_min = min(plan_safe(s, obs, source, st.Delta, st.alpha)[0], solve.zinfo.get("b_min", np.inf))
+    if b_min < -s.check_tol:
+        why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
+        return fallback(s, obs, source, warm, f"{why} (min b_i {b_min:.2f} m^2)")
+    return StepResult(np.array([st.Delta[0], st.alpha[0]]), st, prob.J(st), solve.iters, solve.reason, solve.F_norm,
+                      b_min, solve.zinfo.get("slack", 0.0), "")

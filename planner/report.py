@@ -1,0 +1,95 @@
+"""What a run reports: Table II metrics, the per-step CSV, figures like the paper's Figs. 2-4, and the summary table."""
+import csv
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from data.plot import plot_episode  # noqa: E402
+
+COLORS = {"admm": "tab:red", "nnmpc": "tab:purple"}
+
+
+def metrics(ep, y_ref, x_ref, merge_tol):
+    """Table II and timing metrics of one episode: merged (0/1), t_merge (steps; steps driven if never), C_max, d_min_m, ..."""
+    rows = ep.rows
+    in_lane = [r["step"] for r in rows if abs(r["y"] - y_ref) <= merge_tol and r["x"] < x_ref]
+    ms = np.array([r["step_ms"] for r in rows]) if rows else np.array([np.nan])
+    iters = [r["iterations"] for r in rows if not r["fallback"]]
+    d0 = np.min(np.hypot(*(ep.states[0, 1:, :2] - ep.states[0, 0, :2]).T))
+    return {"merged": float(bool(in_lane)), "t_merge": float(in_lane[0] if in_lane else len(rows)),
+            "C_max": float(np.nanmax([r["cost"] for r in rows])) if rows else float("nan"),
+            "d_min_m": float(min([d0] + [r["d_min_m"] for r in rows])), "collision": float(ep.collided),
+            "step_ms_median": float(np.median(ms)), "step_ms_p95": float(np.percentile(ms, 95)),
+            "admm_iters_mean": float(np.mean(iters)) if iters else 0.0,
+            "fallbacks": float(sum(bool(r["fallback"]) for r in rows)), "steps": float(len(rows))}
+
+
+def write_csv(ep, path):
+    """One row per MPC step: time, state, control, iterations, stop reason, cost, residuals, fallback, wall time."""
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(ep.rows[0]) if ep.rows else ["step"])
+        w.writeheader()
+        w.writerows(ep.rows)
+
+
+def figures(episodes: dict, road, x_ref, y_ref, out_dir, title):
+    """PNG paths: merge snapshots per method (Figs. 2-3), trajectory + cost and steering + acceleration (Fig. 4)."""
+    paths = []
+    for method, ep in episodes.items():
+        p = out_dir / f"snapshots_{method}.png"
+        plot_episode(ep.states, road, p, f"{title} - {method}", x_ref, snapshots=6)
+        paths.append(p)
+    tag = "_".join(episodes)
+    fig, (ax_xy, ax_J) = plt.subplots(2, 1, figsize=(9, 6))
+    for method, ep in episodes.items():
+        c = COLORS.get(method, "k")
+        ax_xy.plot(ep.states[:, 0, 0], ep.states[:, 0, 1], color=c, lw=2, label=f"ego ({method})")
+        ax_J.plot([r["time_s"] for r in ep.rows], [r["cost"] for r in ep.rows], color=c, label=method)
+    first = next(iter(episodes.values()))
+    for j in range(1, first.states.shape[1]):
+        ax_xy.plot(first.states[:, j, 0], first.states[:, j, 1], color="tab:blue", alpha=0.4, lw=1)
+    ax_xy.axhline(y_ref, color="k", ls=":", lw=0.8)
+    ax_xy.axvline(x_ref, color="tab:red", ls=":", lw=0.8)
+    ax_xy.set(xlabel="x (m)", ylabel="y (m)", title=f"{title}: trajectories (others in blue)")
+    ax_J.set(xlabel="time (s)", ylabel="cost J")
+    ax_xy.legend(fontsize=8)
+    ax_J.legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(out_dir / f"trajectory_cost_{tag}.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    fig, (ax_d, ax_a) = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
+    for method, ep in episodes.items():
+        t = [r["time_s"] for r in ep.rows]
+        ax_d.step(t, ep.controls[:, 0], where="post", color=COLORS.get(method, "k"), label=method)
+        ax_a.step(t, ep.controls[:, 1], where="post", color=COLORS.get(method, "k"), label=method)
+    ax_d.set(ylabel="steering delta (rad)", title=f"{title}: controls")
+    ax_a.set(xlabel="time (s)", ylabel="acceleration a (m/s^2)")
+    ax_d.legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(out_dir / f"controls_{tag}.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+def table(results: dict) -> str:
+    """A Table II-style summary: one column per (scenario, method) run."""
+    names = list(results)
+    lines = [f"{'':>16}" + "".join(f"{n:>24}" for n in names)]
+    cell = {
+        "t_merge": lambda m: f"{m['t_merge']:.0f}" if m["merged"] else f"fails after {m['t_merge']:.0f}",
+        "C_max": lambda m: f"{m['C_max']:.1f}",
+        "d_min (m)": lambda m: f"{m['d_min_m']:.2f}",
+        "collision": lambda m: f"{m['collision']:.0f}",
+        "fallbacks": lambda m: f"{m['fallbacks']:.0f}",
+        "ADMM iters": lambda m: f"{m['admm_iters_mean']:.1f}",
+        "step ms (med)": lambda m: f"{m['step_ms_median']:.1f}",
+        "step ms (p95)": lambda m: f"{m['step_ms_p95']:.1f}",
+    }
+    for label, fmt in cell.items():
+        lines.append(f"{label:>16}" + "".join(f"{fmt(results[n]):>24}" for n in names))
+    return "\n".join(lines)

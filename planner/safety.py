@@ -1,0 +1,44 @@
+"""Eq. (6)-(8): single-circle safety b_i(Z) >= 0 against the predicted others, and its Jacobian d b_i / d Z."""
+import numpy as np
+
+
+def b_i(values, R):
+    """d_i (N, T_p) in m^2: squared centre distance ego-to-car minus R^2, R = r + r_i + eps (m); values (T_p, M, 2)."""
+    gap = values[:, :1] - values[:, 1:]
+    return np.sum(gap**2, axis=-1).T - R**2
+
+
+def b_i_jacobian(values, grads, R):
+    """b_i (N*T_p,) and d b_i / d Z (N*T_p, 4T_p), from rollout values (T_p, M, 2) and d values / d ego xy (T_p, M, 2, T_p, 2)."""
+    T_p = len(values)
+    gap = values[:, :1] - values[:, 1:]  # (T_p, N, 2)
+    dgap = grads[:, :1] - grads[:, 1:]  # (T_p, N, 2, T_p, 2)
+    db = 2.0 * np.einsum("tnk,tnkse->ntse", gap, dgap)  # (N, T_p, T_p, 2): d b_i(t) / d ego xy(s)
+    n = db.shape[0]
+    dZ = np.zeros((n, T_p, T_p, 4))
+    dZ[..., :2] = db  # b depends on Z only through the ego's x, y
+    return b_i(values, R).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
+
+
+class Safety:
+    """b_i(Z) for one MPC step: the gradient source's predictions from `history`, radius R (m); caches the last linearisation."""
+
+    def __init__(self, source, history, R, T_p):
+        self.source, self.history, self.R, self.T_p = source, np.asarray(history, dtype=float), R, T_p
+        self._last = (None, None)
+
+    def ego_xy(self, Z):
+        """The ego's planned xy (T_p, 2) from Z stacked as [x, y, psi, v] per step."""
+        return np.reshape(Z, (self.T_p, 4))[:, :2]
+
+    def __call__(self, Z):
+        """b_i(Z) flattened (N*T_p,), m^2, from the predictor's values only."""
+        return b_i(self.source.values(self.history, self.ego_xy(Z)[None])[0], self.R).reshape(-1)
+
+    def linearize(self, Z):
+        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) from the gradient source."""
+        key = np.asarray(Z, dtype=float).tobytes()
+        if self._last[0] != key:
+            values, grads = self.source.jacobian(self.history, self.ego_xy(Z))
+            self._last = (key, b_i_jacobian(values, grads, self.R))
+        return self._last[1]

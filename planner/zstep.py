@@ -1,0 +1,100 @@
+"""Z-update solvers behind one signature, chosen by the `zstep` config key; `sqp` is sequential QP with OSQP.
+
+A Z-step is built once per MPC step from (Phi_3, C, rho, box, safety, settings) and called per ADMM iteration as
+zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info), where zstate is the solver's own carried state (None at first).
+"""
+from typing import NamedTuple
+
+import numpy as np
+from scipy import sparse
+
+from planner.qp import QP
+
+
+class SQPSettings(NamedTuple):
+    """Trust region on the ego's x, y (m), its bounds and growth, iteration cap, step tolerance (m), safety form."""
+
+    max_iters: int = 2
+    trust_radius: float = 1.0
+    min_radius: float = 0.05
+    max_radius: float = 4.0
+    tol: float = 1e-4
+    mode: str = "hard"  # hard: b_i >= 0 with an elastic slack; penalty: - lambda_s' b_i in the objective (eq. (11))
+    lambda_s: float = 1.0  # penalty-form multiplier (1/m^2 per constraint)
+    slack_penalty: float = 1e4  # L1 price of violating a linearised b_i >= 0 (per m^2)
+    slack_tol: float = 1e-3  # slack (m^2) above which the linearisation counts as infeasible
+
+
+class SQPZStep:
+    """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. box, b_i(Z) >= 0, by trust-region SQP over x = [Z; s]."""
+
+    def __init__(self, Phi_3, C, rho, lo, hi, safety, settings: SQPSettings, osqp_settings):
+        self.Phi_3, self.C, self.rho, self.safety, self.s = Phi_3, C, rho, safety, settings
+        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
+        n_Z = C.shape[0]
+        n_b = (safety.history.shape[1] - 1) * (n_Z // 4)
+        self.n_Z, self.n_b = n_Z, n_b
+        self.H = (Phi_3.P + rho * C.T @ C).tocsc()  # the exact Hessian of the smooth part; fixed while rho is
+        P = sparse.block_diag([self.H, sparse.csc_matrix((n_b, n_b))], format="csc")
+        # b_i at step t depends on the ego's x, y at steps <= t: that lower-triangular block pattern is fixed.
+        T_p = n_Z // 4
+        t_row = np.repeat(np.arange(T_p)[None], n_b // T_p, 0).reshape(-1)
+        t_col, k_col = np.arange(n_Z) // 4, np.arange(n_Z) % 4
+        self.mask = (t_col[None] <= t_row[:, None]) & (k_col[None] < 2)
+        G = sparse.bmat([[sparse.eye(n_Z), None], [sparse.csc_matrix(self.mask.astype(float)), sparse.eye(n_b)],
+                         [None, sparse.eye(n_b)]], format="csc")
+        G.sort_indices()
+        cols = np.repeat(np.arange(G.shape[1]), np.diff(G.indptr))
+        self.G_rows, self.G_cols, self.G_data = G.indices, cols, G.data.copy()
+        self.is_b = (self.G_rows >= n_Z) & (self.G_rows < n_Z + n_b) & (self.G_cols < n_Z)
+        self.xy = np.tile([True, True, False, False], T_p)
+        self.qp = QP(P, np.zeros(n_Z + n_b), G, np.zeros(G.shape[0]), np.full(G.shape[0], np.inf), osqp_settings)
+
+    def model(self, Z, lin_q):
+        """The exact quadratic part 1/2 Z'HZ + lin_q'Z."""
+        return 0.5 * Z @ (self.H @ Z) + lin_q @ Z
+
+    def merit(self, Z, lin_q, b):
+        """Quadratic part plus the safety term: L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
+        if self.s.mode == "hard":
+            return self.model(Z, lin_q) + self.s.slack_penalty * np.sum(np.maximum(0.0, -b))
+        return self.model(Z, lin_q) - self.s.lambda_s * np.sum(b)
+
+    def __call__(self, Z, mu, c_Z, zstate=None):
+        """Z_{k+1} from Z_k; zstate is the trust radius (m); info: SQP iterations, max slack, infeasible, min b_i."""
+        radius = self.s.trust_radius if zstate is None else zstate
+        lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
+        Z = np.clip(Z, self.lo, self.hi)
+        b, Jb = self.safety.linearize(Z)
+        b_Z, slack, its = b, 0.0, 0
+        for its in range(1, self.s.max_iters + 1):
+            q = np.concatenate([lin_q, np.full(self.n_b, self.s.slack_penalty)])
+            if self.s.mode == "penalty":
+                q[:self.n_Z] -= self.s.lambda_s * Jb.sum(0)
+            tr = np.where(self.xy, radius, np.inf)
+            b_lo = Jb @ Z - b if self.s.mode == "hard" else np.full(self.n_b, -np.inf)
+            l = np.concatenate([np.maximum(self.lo, Z - tr), b_lo, np.zeros(self.n_b)])
+            u = np.concatenate([np.minimum(self.hi, Z + tr), np.full(2 * self.n_b, np.inf)])
+            data = self.G_data.copy()
+            data[self.is_b] = Jb[self.G_rows[self.is_b] - self.n_Z, self.G_cols[self.is_b]]
+            x = self.qp.solve(q=q, l=l, u=u, Gx=data)
+            Z_new, s = x[:self.n_Z], x[self.n_Z:]
+            slack = float(max(s.max(initial=0.0), 0.0))
+            b_new = self.safety(Z_new)
+            predicted = self.merit(Z, lin_q, b) - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
+            actual = self.merit(Z, lin_q, b) - self.merit(Z_new, lin_q, b_new)
+            step = float(np.max(np.abs(Z_new - Z)))
+            if actual >= 0.1 * predicted or predicted <= 1e-12:
+                if actual >= 0.75 * predicted and step >= 0.99 * radius:
+                    radius = min(2.0 * radius, self.s.max_radius)
+                Z, b_Z = Z_new, b_new
+                if step < self.s.tol:
+                    break
+                b, Jb = self.safety.linearize(Z)
+            else:
+                radius = max(0.5 * radius, self.s.min_radius)
+        return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
+                           "b_min": float(b_Z.min(initial=np.inf))}
+
+
+ZSTEPS = {"sqp": SQPZStep}
