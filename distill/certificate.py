@@ -1,0 +1,129 @@
+"""The student's A1-A3 constants from its weights (float64, metres), their sampled check, and Theorem 1's rho bound.
+
+Conventions (the paper's, made precise):
+- Frame: coordinates relative to the ego's position at planning time. phi is translation-equivariant
+  (phi(w + c) = phi(w) + c), so gradients and Hessians are frame-free and A1 holds in any frame shifted likewise.
+- Box (the planner's input set): |x| <= box.x, |y| <= box.y for every position in a window, per-step
+  displacements |dx| <= box.dx, |dy| <= box.dy. Gradient and Hessian bounds hold on all of R^80; only A1 needs the box.
+- Outputs: phi_{i,w}, i in V = other cars 1..N, w in {x, y}. Z enters a window through the ego slot, so
+  A2 and A3 are w.r.t. the ego's 2 T_obs window coordinates: theta_w >= max-norm of d phi_{i,w} / d ego,
+  L >= spectral norm of the Hessian of phi_{i,w} w.r.t. the ego inputs (the Lipschitz constant of its gradient).
+Bounds: phi_{i,w} = cv_{i,w} + s_w tanh(a_k), a = W_L h_{L-1}(window), h_l = GELU(W_l h_{l-1}), first W with the
+feature map folded in. Layer recursion (L_0 = 1, H_0 = 0): L_l = g1 ||W_l|| L_{l-1},
+H_l = g1 ||W_l|| H_{l-1} + g2 r_l ||W_l|| L_{l-1}^2 (r_l largest row norm); per output row k of W_L:
+|d a_k / d x_j| <= ||W_L[k]|| L_{L-1} ||W_1 e_j|| / ||W_1||, ||Hess a_k|| <= ||W_L[k]|| H_{L-1}, and the tanh head
+gives ||Hess phi_k|| <= s_k (||Hess a_k|| + sup|tanh''| ||grad a_k||^2). cv does not depend on the ego's inputs.
+"""
+import numpy as np
+
+from data import bicycle
+from data.jobs import UserError
+
+G1, G2 = 1.1290, 0.7979  # sup|GELU'|, sup|GELU''| (safe for the erf and tanh forms)
+G2_TANH = 0.7699  # sup|tanh''| = 4 / (3 sqrt 3)
+T_OBS, M = 8, 5
+
+
+def ego_columns(t_obs=T_OBS, m=M):
+    """Indices of the ego's x, y in a window flattened (T_obs, M, 2)."""
+    return np.array([t * m * 2 + c for t in range(t_obs) for c in range(2)])
+
+
+def constants(weights, s, box, s_acc):
+    """s_x, s_y (A1), theta_x, theta_y (A2), L (A3) in metres from the student's float64 weights [(W, b)] and head s."""
+    cols = ego_columns()
+    Ws = [W for W, _ in weights]
+    lip, hess = 1.0, 0.0
+    for k, W in enumerate(Ws[:-1]):
+        W = W[:, cols] if k == 0 else W
+        n, r = np.linalg.norm(W, 2), np.linalg.norm(W, axis=1).max()
+        hess = G1 * n * hess + G2 * r * n * lip**2
+        lip = G1 * n * lip
+    W1 = Ws[0][:, cols]
+    row = np.linalg.norm(Ws[-1], axis=1)  # ||W_L[k]||, k = 2 (i - 1) + w
+    entry = row * lip * np.linalg.norm(W1, axis=0).max() / np.linalg.norm(W1, 2)  # max |d a_k / d ego_j|
+    theta = s * entry
+    L_k = s * (row * hess + G2_TANH * (row * lip) ** 2)
+    return {
+        "s_x": box["x"] + box["dx"] + s_acc[0], "s_y": box["y"] + box["dy"] + s_acc[1],
+        "theta_x": float(theta[0::2].max()), "theta_y": float(theta[1::2].max()), "L": float(L_k.max()),
+    }
+
+
+def sampled(grad_fn, jac64_fn, windows, fd_step=1e-4, chunk=100):
+    """Largest sampled theta_x, theta_y (autodiff gradients) and L (finite-difference Hessians) over `windows`.
+
+    grad_fn(w) -> (next, J (B, M*2, T_obs*M*2)) by autodiff; jac64_fn(w) -> J (B, M*2, 2 T_obs) w.r.t. the ego's
+    inputs only, in float64, differenced for the Hessians.
+    """
+    cols = ego_columns()
+    _, J = grad_fn(windows)
+    G = np.abs(J[:, 2:][:, :, cols])  # (n, 8, 16): others' rows, ego columns
+    out = {"emp_theta_x_max": float(G[:, 0::2].max()), "emp_theta_y_max": float(G[:, 1::2].max())}
+    steps = np.zeros((2 * len(cols),) + windows.shape[1:])
+    for j, c in enumerate(cols):
+        steps[2 * j].flat[c], steps[2 * j + 1].flat[c] = fd_step, -fd_step
+    L_max = 0.0
+    for i in range(0, len(windows), chunk):
+        w = windows[i : i + chunk]
+        Jp = jac64_fn((w[:, None] + steps[None]).reshape(-1, *w.shape[1:]))
+        Jp = Jp[:, 2:].reshape(len(w), len(cols), 2, 8, len(cols))
+        H = (Jp[:, :, 0] - Jp[:, :, 1]) / (2 * fd_step)  # (B, j, k, l): d/d ego_j of d phi_k / d ego_l
+        H = H.transpose(0, 2, 1, 3)
+        H = 0.5 * (H + H.transpose(0, 1, 3, 2))
+        L_max = max(L_max, float(np.linalg.norm(H, ord=2, axis=(-2, -1)).max()))
+    out["emp_theta_max"] = max(out["emp_theta_x_max"], out["emp_theta_y_max"])
+    out["emp_L_max"] = L_max
+    return out
+
+
+def ratios(cert, emp):
+    """Sampled / certified for theta_x, theta_y and L; every one must stay <= 1."""
+    return {"ratio_theta_x": emp["emp_theta_x_max"] / cert["theta_x"], "ratio_theta_y": emp["emp_theta_y_max"] / cert["theta_y"],
+            "ratio_L": emp["emp_L_max"] / cert["L"]}
+
+
+def verify(cert, emp):
+    """Raise a UserError when a sampled value exceeds its certified bound (the certificate would be wrong)."""
+    bad = {k: v for k, v in ratios(cert, emp).items() if not v <= 1.0}
+    if bad:
+        raise UserError("certificate violated by sampled inputs: " + ", ".join(f"{k} = {v:.3g}" for k, v in bad.items()))
+
+
+def admm_matrices(A_t, B_t, C_t, t_p):
+    """The paper's eq. (6) block matrices A (4T_p, T_p), B (4T_p, T_p), C (4T_p, 4T_p) from one linearisation."""
+    A = np.kron(np.eye(t_p), A_t[:, None])
+    B = np.kron(np.eye(t_p), B_t[:, None])
+    C = -np.eye(4 * t_p) + np.kron(np.eye(t_p, k=-1), C_t)
+    return A, B, C
+
+
+def smallest_positive_sv(X, tol=1e-12):
+    """Smallest singular value above tol * the largest."""
+    sv = np.linalg.svd(X, compute_uv=False)
+    return float(sv[sv > tol * sv[0]].min())
+
+
+def rho_bound(c, box, cost, t_p=8, n_others=4, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, dt=0.2):
+    """Theorem 1: rho > max{1, (1 + 2 sigma_min(C)) L_J M}, with Lemma 3's L_1, L_2, L_3, L_g; returns every term.
+
+    Assumptions: the ego's own |x| <= box.x and |y| <= box.y over the horizon (x_max, y_max); one multiplier
+    lambda_s per step and car (||lambda_s||_1 = T_p lambda_s); linearisation at a straight drive at speed v.
+    J is block-separable in (Delta, alpha, Z), so L_J is the largest of its blocks' gradient Lipschitz constants.
+    M bounds the sub-minimisation maps H_1..H_3 = pseudo-inverses of A, B, C on their images (Lemma 2).
+    """
+    L1 = 2 * (c["theta_x"] * (1 + c["theta_x"]) + c["theta_y"] * (1 + c["theta_y"])
+              + (box["x"] + box["y"] + c["s_x"] + c["s_y"]) * c["L"])
+    L2, L3 = 2 * (1 + c["theta_x"]), 2 * (1 + c["theta_y"])
+    L_g = t_p * (max(L1, L2) + max(L1, L3))
+    D = np.eye(t_p) - np.eye(t_p, k=-1)  # steering / acceleration differences, the one before the horizon fixed
+    L_phi1 = 2 * np.linalg.eigvalsh(cost["lambda_delta"] * np.eye(t_p) + cost["lambda_ddelta"] * D.T @ D).max()
+    L_phi2 = 2 * np.linalg.eigvalsh(cost["lambda_a"] * np.eye(t_p) + cost["lambda_da"] * D.T @ D).max()
+    L_phi3 = 2 * max(cost["lambda_div"], cost["lambda_v"])
+    L_J = max(L_phi1, L_phi2, L_phi3 + n_others * t_p * lambda_s * L_g)
+    A_t, B_t, C_t, _ = bicycle.linearize([0.0, 0.0, 0.0, v], delta, a, bicycle.BicycleParams(dt=dt))
+    A, B, C = admm_matrices(A_t, B_t, C_t, t_p)
+    sigma_C = smallest_positive_sv(C)
+    M_sub = max(1 / smallest_positive_sv(A), 1 / smallest_positive_sv(B), 1 / sigma_C)
+    return {"L_1": L1, "L_2": L2, "L_3": L3, "L_g": L_g, "L_J": float(L_J), "sigma_min_C": sigma_C, "M": M_sub,
+            "rho_bound": float(max(1.0, (1 + 2 * sigma_C) * L_J * M_sub))}

@@ -1,0 +1,47 @@
+"""ONNX export of a predictor network and an onnxruntime predictor that reads it back (numpy in, numpy out, metres)."""
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from data.jobs import UserError, atomic_file
+
+
+def export_onnx(module: torch.nn.Module, path: Path, t_obs=8, m=5):
+    """Write `module` (window (B, T_obs, M, 2) -> next (B, M, 2)) to `path` atomically, batch size dynamic."""
+    example = torch.zeros(2, t_obs, m, 2)
+
+    def write(tmp):
+        # the legacy TorchScript exporter: the dynamo one needs onnxscript, which is not a dependency
+        torch.onnx.export(module.eval(), (example,), str(tmp), input_names=["window"], output_names=["next"],
+                          dynamic_axes={"window": {0: "batch"}, "next": {0: "batch"}}, opset_version=17, dynamo=False)
+
+    atomic_file(Path(path), write)
+
+
+class OnnxPredictor:
+    """phi(window) by onnxruntime from an exported file; a missing or corrupt file is a UserError naming it."""
+
+    def __init__(self, path, name=None):
+        import onnxruntime as ort
+
+        path = Path(path)
+        self.name = name or path.stem
+        if not path.exists():
+            raise UserError(f"{path} not found: run `distill model={self.name}`")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1  # batch-1 calls from a planner: threads cost more than they give
+        try:
+            self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        except Exception as e:
+            raise UserError(f"corrupt ONNX file {path}: {str(e).splitlines()[0][:200]}") from None
+
+    def phi(self, window):
+        """Next xy (B, M, 2) in metres, float64."""
+        x = np.ascontiguousarray(window, dtype=np.float32)
+        return self.session.run(None, {"window": x})[0].astype(float)
+
+
+def load_onnx(name: str, models_dir="models") -> OnnxPredictor:
+    """The exported predictor models_dir/<name>.onnx."""
+    return OnnxPredictor(Path(models_dir) / f"{name}.onnx", name)

@@ -1,0 +1,82 @@
+"""Trained predictors behind the shared interface: `load(name)` -> .name, .phi(window), .phi_jac(window), .module.
+
+phi maps windows (B, T_obs, M, 2) of xy in metres to next xy (B, M, 2); phi_jac also returns the exact local
+Jacobian (B, M*2, T_obs*M*2) of the flattened next w.r.t. the flattened window (C order).
+"""
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from torch.func import jacrev
+
+from data.jobs import UserError
+from distill.predictors import ConstantVelocity
+from distill.student import phi_jac64
+
+NAMES = ("teacher", "student", "cv")
+
+
+class TorchPredictor:
+    """A torch network as a numpy predictor: float32 forward, Jacobians by reverse-mode autodiff (torch.func.jacrev)."""
+
+    def __init__(self, name, module):
+        self.name, self.module = name, module.eval()
+
+    def phi(self, window):
+        """Next xy (B, M, 2) in metres, float64."""
+        with torch.no_grad():
+            return self.module(torch.as_tensor(np.asarray(window), dtype=torch.float32)).double().numpy()
+
+    def phi_jac(self, window):
+        """Next xy (B, M, 2) and J (B, M*2, T_obs*M*2): windows are independent, so one jacrev of the batch sum is exact."""
+        w = torch.as_tensor(np.asarray(window), dtype=torch.float32)
+        b = w.shape[0]
+        with torch.no_grad():
+            J = jacrev(lambda x: self.module(x).sum(0))(w)  # (M, 2, B, T_obs, M, 2)
+            nxt = self.module(w)
+        J = J.reshape(-1, b, w[0].numel()).permute(1, 0, 2)
+        return nxt.double().numpy(), J.double().numpy()
+
+
+class StudentPredictor(TorchPredictor):
+    """The GELU student: phi and its exact Jacobian in float64 numpy from the weights (fast at batch 1, as a planner calls it)."""
+
+    def __init__(self, module):
+        super().__init__("student", module)
+        self.weights = module.weights64()
+        self.s = module.s.double().numpy()
+
+    def phi(self, window):
+        return phi_jac64(self.weights, self.s, window, jac=False)
+
+    def phi_jac(self, window):
+        return phi_jac64(self.weights, self.s, window)
+
+    def jac_cols(self, window, cols):
+        """The Jacobian's columns `cols` only (B, M*2, len(cols)), float64: cheap when only the ego's inputs matter."""
+        return phi_jac64(self.weights, self.s, window, cols=cols)[1]
+
+
+def read_checkpoint(path: Path) -> torch.nn.Module:
+    """The network stored in a Lightning checkpoint of a distill task; a corrupt file is a UserError naming it."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        net = instantiate(ckpt["hyper_parameters"]["net"])
+        net.load_state_dict({k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")})
+    except Exception as e:  # torch raises many types for a damaged zip or pickle
+        raise UserError(f"corrupt checkpoint {path}: {type(e).__name__}: {str(e).splitlines()[0][:200]}") from None
+    return net.eval()
+
+
+def load(name: str, models_dir="models"):
+    """The predictor `name` (teacher | student | cv) from models_dir/<name>.ckpt."""
+    if name == "cv":
+        return ConstantVelocity()
+    if name not in NAMES:
+        raise UserError(f"unknown predictor '{name}': choose one of {', '.join(NAMES)}")
+    path = Path(models_dir) / f"{name}.ckpt"
+    if not path.exists():
+        raise UserError(f"{path} not found: run `distill model={name}`")
+    net = read_checkpoint(path)
+    return StudentPredictor(net) if name == "student" else TorchPredictor(name, net)

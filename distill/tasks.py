@@ -1,0 +1,79 @@
+"""Lightning tasks: fit the teacher to data, distil the student from the teacher on outputs and input-Jacobians.
+
+Both hold their network as `self.net`, built by Hydra from its config dict, so a checkpoint alone rebuilds it.
+Errors are measured on the other cars only (slots 1..N): the planner fills the ego slot from its own plan.
+"""
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from torch.func import jacrev, vmap
+
+
+class _Task(L.LightningModule):
+    """Shared parts: the network from its config dict, AdamW with a cosine schedule over the run."""
+
+    def __init__(self, net: dict, lr=2e-3, weight_decay=1e-5):
+        super().__init__()
+        self.save_hyperparameters(logger=False)  # the job already logs the whole config to MLflow
+        self.net = instantiate(net)
+
+    def configure_optimizers(self):
+        opt = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, self.trainer.max_epochs))
+        return [opt], [sched]
+
+    def _log(self, stage, **values):
+        for k, v in values.items():
+            self.log(f"{stage}_{k}", v, prog_bar=k in ("loss", "ade_m"), sync_dist=stage == "val")
+
+
+class TeacherTask(_Task):
+    """Mean squared next-position error of the other cars, in units of `scale_m` metres."""
+
+    def __init__(self, net: dict, lr=2e-3, weight_decay=1e-5, scale_m=0.01):
+        super().__init__(net, lr, weight_decay)
+
+    def _step(self, batch, stage):
+        X, Y = batch
+        err = (self.net(X) - Y)[:, 1:]
+        loss = (err / self.hparams.scale_m).pow(2).mean()
+        self._log(stage, loss=loss, ade_m=err.norm(dim=-1).mean())
+        return loss
+
+    def training_step(self, batch, batch_idx):
+        return self._step(batch, "train")
+
+    def validation_step(self, batch, batch_idx):
+        self._step(batch, "val")
+
+
+class StudentTask(_Task):
+    """Sobolev distillation: output error / scale_m squared + jac_weight * Jacobian error squared + spectral penalty."""
+
+    def __init__(self, net: dict, lr=3e-3, weight_decay=0.0, scale_m=0.01, jac_weight=1.0, spectral_weight=0.0):
+        super().__init__(net, lr, weight_decay)
+
+    def spectral_penalty(self):
+        """Sum of log spectral norms of the layers (first with P folded): the log of the certificate's product."""
+        norms = [torch.linalg.matrix_norm(layer.weight @ self.net.P if k == 0 else layer.weight, ord=2)
+                 for k, layer in enumerate(self.net.layers)]
+        return torch.stack(norms).log().sum()
+
+    def _step(self, batch, stage):
+        X, y_t, J_t = batch
+        J_s = vmap(jacrev(lambda w: self.net(w[None])[0].reshape(-1)))(X).reshape(J_t.shape)
+        err = (self.net(X) - y_t)[:, 1:]
+        out_loss = (err / self.hparams.scale_m).pow(2).mean()
+        jac_loss = (J_s - J_t)[:, 2:].pow(2).mean()
+        loss = out_loss + self.hparams.jac_weight * jac_loss
+        if self.hparams.spectral_weight:
+            loss = loss + self.hparams.spectral_weight * self.spectral_penalty()
+        self._log(stage, loss=loss, out_loss=out_loss, jac_loss=jac_loss, ade_m=err.norm(dim=-1).mean())
+        return loss
+
+    def training_step(self, batch, batch_idx):
+        return self._step(batch, "train")
+
+    def validation_step(self, batch, batch_idx):
+        with torch.enable_grad():  # the Jacobian term needs autograd even in validation
+            self._step(batch, "val")

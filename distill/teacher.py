@@ -1,0 +1,53 @@
+"""The teacher: a deterministic Social-GAN-style predictor (GRU encoder per car, social max-pooling, ReLU decoder).
+
+window (B, T_obs, M, 2) xy in metres, ego in slot 0 -> next xy (B, M, 2) in metres. All normalisation is inside:
+positions relative to the ego's last position, per-step velocities and accelerations, each divided by a fixed
+scale. The decoder predicts each other car's acceleration over the step; the ego slot keeps constant velocity
+because the planner overwrites it with its own plan.
+"""
+import torch
+from torch import nn
+
+
+def relu_mlp(sizes):
+    """Linear-ReLU stack with sizes [in, h1, ..., out]; no activation after the last layer."""
+    layers = []
+    for a, b in zip(sizes[:-1], sizes[1:]):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*layers[:-1])
+
+
+class SocialTeacher(nn.Module):
+    """Social GAN's generator made deterministic: encoder GRU, pairwise Pool Net, MLP decoder (scales in m, m/step)."""
+
+    def __init__(self, hidden=128, pool=256, decoder=(256, 256), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+        super().__init__()
+        self.pos_scale, self.vel_scale, self.acc_scale = pos_scale, vel_scale, acc_scale
+        self.encoder = nn.GRU(6, hidden, batch_first=True)
+        self.slot = nn.Parameter(torch.zeros(5, hidden))  # slot 0 is the ego, 1..4 are ordered front to back
+        # Pool Net: each car i looks at every car j through (relative position, relative velocity, j's state).
+        self.pool = relu_mlp([4 + hidden, pool, pool])
+        self.decoder = relu_mlp([hidden + pool, *decoder, 2])
+        nn.init.zeros_(self.decoder[-1].weight)  # start exactly at constant velocity
+        nn.init.zeros_(self.decoder[-1].bias)
+
+    def forward(self, window):
+        """Next xy (B, M, 2) in metres from window (B, T_obs, M, 2) in metres."""
+        b, t, m, _ = window.shape
+        vel = window[:, 1:] - window[:, :-1]  # m per step
+        acc = vel[:, 1:] - vel[:, :-1]
+        rel = window - window[:, -1:, :1]  # relative to the ego's last position
+        steps = torch.cat([rel[:, 2:] / self.pos_scale, vel[:, 1:] / self.vel_scale, acc / self.acc_scale], -1)
+        _, h = self.encoder(steps.permute(0, 2, 1, 3).reshape(b * m, t - 2, 6))
+        h = h[-1].reshape(b, m, -1) + self.slot[:m]
+
+        last, v_last = rel[:, -1], vel[:, -1]
+        d_pos = (last[:, None, :] - last[:, :, None]) / self.pos_scale  # (B, i, j, 2): j seen from i
+        d_vel = (v_last[:, None, :] - v_last[:, :, None]) / self.vel_scale
+        h_j = h[:, None].expand(b, m, m, h.shape[-1])
+        pooled = self.pool(torch.cat([d_pos, d_vel, h_j], -1)).max(dim=2).values
+
+        acc_next = self.acc_scale * self.decoder(torch.cat([h, pooled], -1))
+        others = torch.ones(m, 1, dtype=window.dtype, device=window.device)
+        others[0] = 0.0
+        return window[:, -1] + vel[:, -1] + others * acc_next

@@ -1,0 +1,130 @@
+"""The distill job: train (teacher) or distil (student) with Lightning, evaluate, certify, export, log to MLflow."""
+import json
+import os
+import shutil
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import lightning as L
+import mlflow
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import MLFlowLogger
+from omegaconf import DictConfig, OmegaConf
+
+from data import dataset
+from data.jobs import DEFAULT_TRACKING_URI, UserError, atomic_file, mlflow_run
+from distill import certificate, metrics, models
+from distill.export import export_onnx, load_onnx
+from distill.perturb import box_windows, planner_like
+
+ONNX_TOL_M = 1e-4
+
+
+def fit(cfg: DictConfig, run_id, teacher):
+    """Lightning fit of cfg.model's task; returns the trainer (its best checkpoint holds the chosen weights)."""
+    data = instantiate(cfg.model.data, dataset_dir=cfg.dataset_dir, teacher=teacher, _convert_="all")
+    task = instantiate(cfg.model.task, _convert_="all")
+    uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
+    logger = MLFlowLogger(experiment_name="distill", tracking_uri=uri, run_id=run_id) if run_id else False
+    trainer = instantiate(cfg.trainer, logger=logger)
+    if cfg.ckpt_path and not Path(cfg.ckpt_path).exists():
+        raise UserError(f"ckpt_path {cfg.ckpt_path} not found")
+    trainer.fit(task, datamodule=data, ckpt_path=cfg.ckpt_path)
+    return trainer
+
+
+def certify(cfg_cert, predictor, windows, rng):
+    """Certificate constants + rho bound, and the sampled check on data, planner-like and box windows (in metres)."""
+    box = dict(cfg_cert.box)
+    s_acc = predictor.s[:2]
+    c = certificate.constants(predictor.weights, predictor.s, box, s_acc)
+    c.update(certificate.rho_bound(c, box, dict(cfg_cert.cost), cfg_cert.T_p, 4, cfg_cert.lambda_s,
+                                   **dict(cfg_cert.typical)))
+    c["rho_used"] = float(cfg_cert.rho_used)
+    data = windows - windows[:, -1:, :1]  # ego-centred frame; gradients do not depend on it
+    n_pert = max(0, min(len(data), cfg_cert.samples // 3))
+    pert = planner_like(data[rng.integers(0, len(data), n_pert)], rng, lat_rate=0.8, dv=0.6, dx=4.0, other_speed=0.3)
+    boxed = box_windows(max(0, cfg_cert.samples - len(data) - n_pert), rng, box)
+    sample = np.concatenate([data, pert, boxed])
+    cols = certificate.ego_columns()
+    autodiff = models.TorchPredictor("student", predictor.module).phi_jac
+    emp = certificate.sampled(autodiff, lambda w: predictor.jac_cols(w, cols), sample, cfg_cert.fd_step_m)
+    emp["emp_samples"] = len(sample)
+    return c, emp
+
+
+def run(cfg: DictConfig):
+    """Train or distil cfg.model.name, write models/<name>.{ckpt,onnx} (+ certificate.json); returns the metrics."""
+    name = cfg.model.name
+    dataset.read_meta(cfg.dataset_dir)  # a missing dataset stops here, naming make-dataset
+    torch.set_num_threads(cfg.threads)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    rank0 = int(os.environ.get("LOCAL_RANK", 0)) == 0  # Lightning's DDP launcher re-runs this job in child processes
+    with (mlflow_run("distill", cfg, run_name=name, model=name) if rank0 else nullcontext()) as run_:
+        teacher = models.load(cfg.model.teacher, cfg.models_dir) if name == "student" else None
+        t0 = time.perf_counter()
+        trainer = fit(cfg, run_.info.run_id if rank0 else None, teacher)
+        if trainer.global_rank != 0:
+            return None
+        results = {"train_s": time.perf_counter() - t0, "epochs": trainer.current_epoch}
+        best = Path(trainer.checkpoint_callback.best_model_path or trainer.checkpoint_callback.last_model_path)
+        predictor = models.StudentPredictor(models.read_checkpoint(best)) if name == "student" else \
+            models.TorchPredictor(name, models.read_checkpoint(best))
+        test = dataset.load(cfg.dataset_dir, cfg.eval_split)
+        table = {name: metrics.ade(predictor, test), "cv": metrics.ade(models.load("cv"), test)}
+        results.update(table[name])
+        results.update({f"cv_{k}": v for k, v in table["cv"].items()})
+        results["params"] = sum(p.numel() for p in predictor.module.parameters())
+        results["forward_us"] = metrics.forward_us(predictor, test["X"])
+        cert = None
+        if name == "student":
+            table["teacher"] = metrics.ade(teacher, test)
+            results.update({f"teacher_{k}": v for k, v in table["teacher"].items()})
+            results.update(metrics.jac_rel_err(predictor, teacher, test["X"][:512].astype(float)))
+            t1 = time.perf_counter()
+            cert, emp = certify(cfg.model.certificate, predictor, test["X"].astype(float), np.random.default_rng(cfg.seed))
+            results.update({f"cert_{k}": v for k, v in cert.items() if k in ("s_x", "s_y", "theta_x", "theta_y", "L", "rho_bound")})
+            results.update(emp)
+            results.update(certificate.ratios(cert, emp))
+            results["cert_check_s"] = time.perf_counter() - t1
+            certificate.verify(cert, emp)
+
+        models_dir = Path(cfg.models_dir)
+        export_onnx(predictor.module, models_dir / f"{name}.onnx")
+        onnx = load_onnx(name, models_dir)
+        results["onnx_max_err_m"] = float(np.abs(onnx.phi(test["X"][:256]) - predictor.phi(test["X"][:256])).max())
+        results["forward_us_onnx"] = metrics.forward_us(onnx, test["X"])
+        if not results["onnx_max_err_m"] <= ONNX_TOL_M:
+            raise UserError(f"{models_dir / name}.onnx disagrees with torch by {results['onnx_max_err_m']:.2e} m")
+        atomic_file(models_dir / f"{name}.ckpt", lambda tmp: shutil.copyfile(best, tmp))
+        if cert is not None:
+            doc = {"constants_m": cert, "sampled": emp, "ratios": certificate.ratios(cert, emp),
+                   "box": OmegaConf.to_container(cfg.model.certificate, resolve=True), "checkpoint": str(models_dir / f"{name}.ckpt"),
+                   "conventions": certificate.__doc__}
+            atomic_file(models_dir / "certificate.json", lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
+            mlflow.log_artifact(str(models_dir / "certificate.json"))
+        mlflow.log_metrics({k: float(v) for k, v in results.items()})
+    print(summary(name, table, results, cert))
+    return results
+
+
+def summary(name, table, r, cert):
+    """The end-of-job report: ADE table against constant velocity, and for the student the certificate."""
+    cols = ["ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_1step_m_yield", "ade_rollout_m_yield"]
+    lines = [f"distill {name}: {r['epochs']} epochs in {r['train_s']:.1f} s, {r['params']} parameters, "
+             f"phi {r['forward_us']:.0f} us (onnxruntime {r['forward_us_onnx']:.0f} us), onnx max err {r['onnx_max_err_m']:.1e} m",
+             f"{'predictor':10s}" + "".join(f"{c:>21s}" for c in cols)]
+    for k, m in table.items():
+        lines.append(f"{k:10s}" + "".join(f"{m[c]:21.4f}" for c in cols))
+    if cert is not None:
+        lines.append(f"jac_rel_err {r['jac_rel_err']:.4f} (w.r.t. the ego's inputs {r['jac_rel_err_ego']:.4f}) vs teacher autodiff")
+        lines.append(f"certificate (m): s_x {cert['s_x']:.2f}  s_y {cert['s_y']:.2f}  theta_x {cert['theta_x']:.4g}  "
+                     f"theta_y {cert['theta_y']:.4g}  L {cert['L']:.4g}")
+        lines.append(f"sampled over {r['emp_samples']} windows: theta_x {r['emp_theta_x_max']:.4g} (ratio {r['ratio_theta_x']:.3f})  "
+                     f"theta_y {r['emp_theta_y_max']:.4g} (ratio {r['ratio_theta_y']:.3f})  L {r['emp_L_max']:.4g} (ratio {r['ratio_L']:.3f})")
+        lines.append(f"Theorem 1: rho > {cert['rho_bound']:.4g} (L_J {cert['L_J']:.4g}, M {cert['M']:.3g}, "
+                     f"sigma_min(C) {cert['sigma_min_C']:.3g}); the planner uses rho = {cert['rho_used']:g}")
+    return "\n".join(lines)
