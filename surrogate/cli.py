@@ -1,0 +1,122 @@
+"""`surrogate`: Jacobian data from the source predictor, train the gradient network, export ONNX, log to MLflow."""
+import copy
+from pathlib import Path
+
+import hydra
+import mlflow
+import numpy as np
+import torch
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import MLFlowLogger
+from omegaconf import DictConfig
+
+from data import dataset
+from data.jobs import CONF_DIR, UserError, guarded, mlflow_run
+from distill.predictors import ConstantVelocity
+from surrogate import evaluate, jacobians, models
+from surrogate.export import export
+from surrogate.network import Fused
+from surrogate.training import JacobianData, SurrogateModule, rel_err
+
+METHODS = ("autodiff", "central")
+
+
+def instantiate_user(node, **kwargs):
+    """hydra.utils.instantiate, letting a UserError from the target through as itself (one line, exit 2)."""
+    try:
+        return instantiate(node, **kwargs)
+    except InstantiationException as e:
+        if isinstance(e.__cause__, UserError):
+            raise e.__cause__ from None
+        raise
+
+
+def windows_and_jacobians(cfg, source, sampler, split, n_dataset, n_states, rng):
+    """(windows, J) of one split: up to n_dataset dataset windows plus every rollout window of n_states planning states."""
+    X = dataset.load(cfg.dataset_dir, split)["X"].astype(np.float64)
+    own = X[rng.permutation(len(X))[:n_dataset]]
+    history, ego_future = sampler.sample(X[rng.integers(0, len(X), n_states)], rng)
+    W = np.concatenate([own, jacobians.planner_windows(source.phi, history, ego_future)])
+    if cfg.method == "autodiff":
+        return W, jacobians.autodiff(source, W)
+    return W, jacobians.central(source.phi, W, cfg.central_h)
+
+
+def time_autodiff(cfg, window):
+    """Microseconds per exact local Jacobian at batch 1 for each trained predictor present (teacher, student)."""
+    out = {}
+    for name in cfg.timing.predictors:
+        try:
+            predictor = instantiate_user(cfg.predictor, name=name)
+        except UserError:
+            continue  # not trained here: nothing to time
+        out[f"{name}_autodiff_us"] = evaluate.time_us(predictor.phi_jac, window, cfg.timing.repeats)
+    return out
+
+
+@guarded
+def run(cfg: DictConfig) -> dict:
+    """Make the data, train, export, evaluate; returns the logged metrics."""
+    if cfg.method not in METHODS:
+        raise UserError(f"method={cfg.method}: choose one of {', '.join(METHODS)}")
+    rng = np.random.default_rng(cfg.seed)
+    source = instantiate_user(cfg.predictor)
+    if cfg.fused and not hasattr(source, "module"):
+        raise UserError(f"fused=true exports the source's torch network, and {cfg.source} has none: use fused=false")
+    sampler = instantiate(cfg.states)
+    with mlflow_run("surrogate", cfg, run_name=f"surrogate-{cfg.source}", source=cfg.source) as run:
+        train = windows_and_jacobians(cfg, source, sampler, "train", cfg.data.dataset_windows, cfg.data.plan_states, rng)
+        val = windows_and_jacobians(cfg, source, sampler, "val", cfg.data.val_dataset_windows, cfg.data.val_plan_states, rng)
+        T_obs, M = train[0].shape[1:3]
+        net = instantiate(cfg.network, T_obs=T_obs, M=M)
+        net.fit_normalisation(*train)
+        logger = MLFlowLogger(experiment_name="surrogate", tracking_uri=mlflow.get_tracking_uri(), run_id=run.info.run_id)
+        trainer = instantiate(cfg.trainer, logger=logger, default_root_dir=cfg.out_dir)
+        trainer.fit(instantiate(cfg.module, net=net), datamodule=JacobianData(train, val, cfg.data.batch_size))
+
+        net = net.eval()
+        module = Fused(net, copy.deepcopy(source.module)) if cfg.fused else net
+        path = Path(cfg.models_dir) / "surrogate.onnx"
+        export(copy.deepcopy(module), path, T_obs, M, cfg.source)
+        surrogate = models.load(cfg.models_dir, T_obs, M)
+
+        test = dataset.load(cfg.dataset_dir, "test")["X"].astype(np.float64)
+        history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
+        W = jacobians.planner_windows(source.phi, history, ego_future)
+        J, J_hat = jacobians.autodiff(source, W), surrogate.jac(W)
+        J_mean = net.J_mean.double().numpy().reshape(J.shape[1:])
+        J_cv = ConstantVelocity().phi_jac(W[:1])[1][0]
+        with torch.no_grad():
+            with_torch = net(torch.as_tensor(W, dtype=torch.float32)).double().numpy()
+        metrics = {"jac_rel_err": rel_err(J_hat, J), "jac_rel_err_mean": rel_err(J_mean[None], J),
+                   "jac_rel_err_cv": rel_err(J_cv[None], J), "onnx_max_abs_err": float(np.abs(J_hat - with_torch).max())}
+
+        R = cfg.safety.r + cfg.safety.r_i + cfg.safety.eps
+        n = cfg.data.grad_states
+        scores = evaluate.gradient_accuracy(source, {"": surrogate.jac, "_mean": lambda w: J_mean[None],
+                                                     "_cv": lambda w: J_cv[None]}, history[:n], ego_future[:n], R)
+        metrics.update({f"{k}{suffix}": v for suffix, s in scores.items() for k, v in s.items()})
+
+        window = test[:1]
+        metrics["forward_us"] = evaluate.time_us(surrogate.jac, window, cfg.timing.repeats)
+        if surrogate.fused:
+            metrics["fused_us"] = evaluate.time_us(surrogate.phi_jac, window, cfg.timing.repeats)
+        metrics["source_autodiff_us"] = evaluate.time_us(source.phi_jac, window, cfg.timing.repeats)
+        metrics.update(time_autodiff(cfg, window))
+        metrics.update({"n_train": len(train[0]), "n_val": len(val[0]), "n_test": len(W)})
+        mlflow.log_metrics(metrics)
+        mlflow.log_artifact(str(path))
+
+    print(f"surrogate of {cfg.source} ({cfg.method}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
+          f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
+          f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "
+          f"others' reaction d p_i/dZ rel err {metrics['react_rel_err']:.3f} (mean-J {metrics['react_rel_err_mean']:.3f}); "
+          f"local J rel err {metrics['jac_rel_err']:.4f} (mean-J {metrics['jac_rel_err_mean']:.4f}); "
+          f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff")
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="surrogate")
+def main(cfg: DictConfig) -> None:
+    run(cfg)

@@ -1,0 +1,50 @@
+"""The planner's view of the surrogate: `load()` -> local Jacobians (and fused next xy) from models/surrogate.onnx."""
+from pathlib import Path
+
+import numpy as np
+
+from data.jobs import UserError
+
+
+class Surrogate:
+    """onnxruntime session on surrogate.onnx; `.jac(window)` -> J (B, M*2, T_obs*M*2) m/m float64, `.source` its teacher."""
+
+    def __init__(self, session, source, path):
+        self.session, self.source, self.path = session, source, path
+        self.name = "surrogate"
+        self.fused = "next" in [o.name for o in session.get_outputs()]
+
+    def jac(self, window):
+        """Learned local Jacobian J (B, M*2, T_obs*M*2), float64, of window (B, T_obs, M, 2) metres."""
+        (J,) = self.session.run(["J"], {"window": np.asarray(window, dtype=np.float32)})
+        return J.astype(np.float64)
+
+    def phi_jac(self, window):
+        """(next xy (B, M, 2) m from the source predictor, J (B, M*2, T_obs*M*2)) in one call; fused models only."""
+        if not self.fused:
+            raise UserError(f"{self.path} was exported without the source's forward pass (surrogate fused=false)")
+        J, nxt = self.session.run(["J", "next"], {"window": np.asarray(window, dtype=np.float32)})
+        return nxt.astype(np.float64), J.astype(np.float64)
+
+
+def load(models_dir="models", T_obs=8, M=5):
+    """The surrogate from <models_dir>/surrogate.onnx, checked against window (B, T_obs, M, 2) -> J (B, M*2, T_obs*M*2)."""
+    import onnxruntime as ort
+
+    path = Path(models_dir) / "surrogate.onnx"
+    if not path.exists():
+        raise UserError(f"{path} not found: run `surrogate`")
+    expected = f"expected window (B, {T_obs}, {M}, 2) -> J (B, {2 * M}, {2 * T_obs * M})"
+    try:
+        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own pybind types for unreadable or invalid graphs
+        raise UserError(f"{path} is not a valid ONNX model ({str(e).splitlines()[0][:200]}); {expected}; re-run `surrogate`") from None
+    inputs = {i.name: i.shape[1:] for i in session.get_inputs()}
+    outputs = {o.name: o.shape[1:] for o in session.get_outputs()}
+    if inputs != {"window": [T_obs, M, 2]} or outputs.get("J") != [2 * M, 2 * T_obs * M] or \
+            outputs.get("next", [M, 2]) != [M, 2]:
+        raise UserError(f"{path} has inputs {inputs} and outputs {outputs}; {expected}; re-run `surrogate`")
+    source = session.get_modelmeta().custom_metadata_map.get("source")
+    if not source:
+        raise UserError(f"{path} does not record the predictor it learned (ONNX metadata `source`); re-run `surrogate`")
+    return Surrogate(session, source, path)

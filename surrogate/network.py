@@ -1,0 +1,65 @@
+"""The surrogate network: window (B, T_obs, M, 2) in metres -> the predictor's local Jacobian (B, M*2, T_obs*M*2).
+
+Structure it exploits: a predictor that moves with the traffic (phi(window + c) = phi(window) + c along the road)
+has a Jacobian that depends on relative positions only, so the network reads the window relative to the ego's last
+position (plus, optionally, absolute coordinates such as y, where lanes sit at fixed places). It predicts the
+standardised deviation from the training mean Jacobian, so the large constant-velocity part is exact by construction
+and its capacity goes to the interaction terms.
+"""
+import numpy as np
+import torch
+from torch import nn
+
+AXES = {"x": 0, "y": 1}
+
+
+class JacobianNet(nn.Module):
+    """MLP on relative window features -> J = mean_J + std_J * net(features); lengths in m, J in m/m."""
+
+    def __init__(self, T_obs=8, M=5, hidden=256, depth=3, absolute="y"):
+        super().__init__()
+        self.T_obs, self.M, self.absolute = T_obs, M, [AXES[a] for a in absolute]
+        n_in, n_out = T_obs * M * 2 + len(self.absolute), M * 2 * T_obs * M * 2
+        layers, width = [], n_in
+        for _ in range(depth):
+            layers += [nn.Linear(width, hidden), nn.SiLU()]
+            width = hidden
+        self.net = nn.Sequential(*layers, nn.Linear(width, n_out))
+        for name, size in (("x_mean", n_in), ("x_std", n_in), ("J_mean", n_out), ("J_std", n_out)):
+            self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
+
+    def features(self, window):
+        """(B, n_in): the window relative to the ego's last xy, then the chosen absolute coordinates of that point."""
+        anchor = window[:, -1:, :1]
+        rel = (window - anchor).flatten(1)
+        return torch.cat([rel, anchor.flatten(1)[:, self.absolute]], dim=1)
+
+    def standardised(self, window):
+        """Network output: (J - J_mean) / J_std, flattened (B, M*2*T_obs*M*2)."""
+        return self.net((self.features(window) - self.x_mean) / self.x_std)
+
+    def forward(self, window):
+        """J (B, M*2, T_obs*M*2), m/m."""
+        flat = self.J_mean + self.J_std * self.standardised(window)
+        return flat.view(-1, self.M * 2, self.T_obs * self.M * 2)
+
+    def fit_normalisation(self, windows, J, floor=1e-3):
+        """Set the feature and target statistics from training windows (B, T_obs, M, 2) and Jacobians (B, M*2, T_obs*M*2)."""
+        x = self.features(torch.as_tensor(np.asarray(windows), dtype=torch.float32))
+        J = torch.as_tensor(np.asarray(J).reshape(len(J), -1), dtype=torch.float32)
+        self.x_mean.copy_(x.mean(0))
+        self.x_std.copy_(x.std(0).clamp_min(floor))
+        self.J_mean.copy_(J.mean(0))
+        self.J_std.copy_(J.std(0).clamp_min(floor))
+
+
+class Fused(nn.Module):
+    """window -> (J from the surrogate, next xy from the source predictor): one ONNX call gives the planner both."""
+
+    def __init__(self, surrogate: JacobianNet, source: nn.Module):
+        super().__init__()
+        self.surrogate, self.source = surrogate, source
+
+    def forward(self, window):
+        """(J (B, M*2, T_obs*M*2) m/m, next (B, M, 2) m)."""
+        return self.surrogate(window), self.source(window)

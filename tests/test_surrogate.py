@@ -1,0 +1,122 @@
+"""The gradient surrogate: central differences vs autodiff, ONNX parity and refusals, and a trained one beats baselines."""
+import numpy as np
+import pytest
+import torch
+
+from conftest import compose_cfg
+from data.jobs import UserError
+from distill.models import StudentPredictor, TorchPredictor
+from distill.student import GeluStudent
+from surrogate import jacobians, models
+from surrogate.export import export
+from surrogate.network import Fused, JacobianNet
+from surrogate.states import PlanSampler
+
+T_OBS, M = 8, 5
+
+
+def smooth_student(seed=0):
+    """A student-shaped GELU network with random (not trained) weights whose others react to the ego."""
+    torch.manual_seed(seed)
+    net = GeluStudent(hidden=(16, 16))
+    torch.nn.init.normal_(net.layers[-1].weight, 0.0, 0.5)
+    return net.eval()
+
+
+def stand_in(name, models_dir):
+    """Drop-in for distill.models.load: the source predictor the job learns, without any trained model on disk."""
+    return TorchPredictor(name, smooth_student())
+
+
+def planning_windows(n=6, seed=0):
+    """Windows the planner's recursion visits, from a synthetic platoon history with sampled ego plans."""
+    rng = np.random.default_rng(seed)
+    start = np.array([[0.0, 0.0], [12.0, 4.0], [5.0, 4.0], [-2.0, 4.0], [-9.0, 4.0]])
+    vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (n, 1, M, 2))
+    history = start[None, None] + rng.normal(0, 0.5, (n, 1, M, 2)) + np.arange(T_OBS)[None, :, None, None] * vel
+    history, ego_future = PlanSampler().sample(history, rng)
+    return jacobians.planner_windows(StudentPredictor(smooth_student()).phi, history, ego_future)
+
+
+def test_central_differences_agree_with_autodiff_on_a_smooth_student():
+    W = planning_windows()
+    J_auto = jacobians.autodiff(TorchPredictor("student", smooth_student()), W)
+    J_central = jacobians.central(StudentPredictor(smooth_student()).phi, W, h=1e-4)  # float64 black box
+    reaction = J_auto.reshape(len(W), M, 2, T_OBS, M, 2)[:, 1:, :, :, 0]  # others' next xy w.r.t. the ego's track
+    assert np.abs(reaction).max() > 1e-2  # the others do react to the ego, so the check has teeth
+    np.testing.assert_allclose(J_central, J_auto, atol=1e-4 * np.abs(J_auto).max())
+
+
+def exported(tmp_path, module, M_=M):
+    """Export `module` to tmp_path/surrogate.onnx and return the folder."""
+    export(module, tmp_path / "surrogate.onnx", T_OBS, M_, source="student")
+    return tmp_path
+
+
+def test_onnx_matches_torch_and_records_its_source(tmp_path):
+    torch.manual_seed(1)
+    net = JacobianNet(T_OBS, M, hidden=32, depth=2).eval()
+    W = planning_windows(2)
+    net.fit_normalisation(W, jacobians.autodiff(TorchPredictor("student", smooth_student()), W))
+    source = smooth_student()
+    surrogate = models.load(exported(tmp_path, Fused(net, source)))
+    with torch.no_grad():
+        J, nxt = net(torch.as_tensor(W, dtype=torch.float32)).numpy(), source(torch.as_tensor(W, dtype=torch.float32)).numpy()
+    assert surrogate.source == "student" and surrogate.fused
+    np.testing.assert_allclose(surrogate.jac(W), J, atol=1e-5 * np.abs(J).max())
+    nxt_onnx, J_onnx = surrogate.phi_jac(W)
+    np.testing.assert_allclose(nxt_onnx, nxt, atol=1e-4)
+    np.testing.assert_allclose(J_onnx, J, atol=1e-5 * np.abs(J).max())
+
+
+def test_missing_file_names_the_command(tmp_path):
+    with pytest.raises(UserError, match=r"surrogate.onnx not found: run `surrogate`"):
+        models.load(tmp_path)
+
+
+def test_corrupt_file_is_refused_with_the_expected_shapes(tmp_path):
+    (tmp_path / "surrogate.onnx").write_bytes(b"not a protobuf" * 10)
+    with pytest.raises(UserError, match=r"surrogate.onnx is not a valid ONNX model.*window \(B, 8, 5, 2\) -> J \(B, 10, 80\)"):
+        models.load(tmp_path)
+
+
+def test_wrong_shape_model_is_refused(tmp_path):
+    wrong = JacobianNet(T_OBS, M - 1, hidden=8, depth=1)  # a surrogate for four cars, not five
+    with pytest.raises(UserError, match=r"surrogate.onnx has inputs .*\[8, 4, 2\].*expected window \(B, 8, 5, 2\)"):
+        models.load(exported(tmp_path, wrong, M - 1))
+
+
+def job_cfg(tmp_path, tiny_dataset, *overrides):
+    """The `surrogate` job at test size, learning the stand-in source on the tiny dataset."""
+    return compose_cfg("surrogate", [
+        f"dataset_dir={tiny_dataset}", f"models_dir={tmp_path}",
+        f"out_dir={tmp_path}", "predictor._target_=test_surrogate.stand_in", "source=student",
+        "data.dataset_windows=1500", "data.plan_states=300", "data.val_dataset_windows=200",
+        "data.val_plan_states=30", "data.test_plan_states=30", "data.grad_states=30", "network.hidden=128",
+        "trainer.max_epochs=15", "timing.repeats=20", "timing.predictors=[]", *overrides])
+
+
+def test_trained_surrogate_beats_the_mean_and_constant_velocity_jacobians(tmp_path, tiny_dataset):
+    import mlflow
+
+    from surrogate.cli import run
+
+    m = run(job_cfg(tmp_path, tiny_dataset))
+    assert m["jac_rel_err"] < 0.6 * m["jac_rel_err_mean"] and m["jac_rel_err_mean"] < m["jac_rel_err_cv"]
+    assert m["react_rel_err"] < 0.6 * m["react_rel_err_mean"]
+    assert m["grad_rel_err"] < m["grad_rel_err_mean"] and m["grad_cosine"] > m["grad_cosine_cv"]
+    assert m["onnx_max_abs_err"] < 1e-4
+    assert models.load(tmp_path).source == "student"
+    runs = mlflow.search_runs(experiment_names=["surrogate"], filter_string="params.source = 'student'")
+    assert len(runs) >= 1 and "metrics.grad_cosine" in runs
+
+
+def test_missing_dataset_and_missing_teacher_name_their_commands(tmp_path, tiny_dataset, capsys):
+    from surrogate.cli import run
+
+    with pytest.raises(SystemExit):
+        run(job_cfg(tmp_path, tiny_dataset, f"dataset_dir={tmp_path}"))
+    assert "make-dataset" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        run(job_cfg(tmp_path, tiny_dataset, "predictor._target_=distill.models.load", "source=teacher"))
+    assert "run `distill model=teacher`" in capsys.readouterr().err
