@@ -52,7 +52,7 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
         params=scenario.params, T_p=cfg.T_p, rho=cfg.rho, R=R, delta_box=tuple(lim.delta), a_box=tuple(lim.a),
         psi_box=tuple(lim.psi), v_box=tuple(lim.v), y_margin=lim.y_margin, linearize=cfg.linearize,
         admm=dict(cfg.admm), zstep=cfg.zstep, sqp=instantiate(cfg.sqp), osqp=dict(cfg.osqp),
-        check_tol=R**2 - (saf.r + saf.r_i) ** 2, check_steps=saf.check_steps, brake=cfg.brake)
+        check_tol=saf.check_tol, check_steps=saf.check_steps, brake=cfg.brake)
 
 
 def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str):

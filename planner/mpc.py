@@ -27,7 +27,7 @@ class Settings:
     params: bicycle.BicycleParams
     T_p: int = 8
     rho: float = 100.0
-    R: float = 3.8  # r + r_i + eps (m)
+    R: float = 3.95  # r + r_i + eps (m)
     delta_box: tuple = (-0.5, 0.5)  # rad
     a_box: tuple = (-4.0, 3.0)  # m/s^2
     psi_box: tuple = (-0.6, 0.6)  # rad
@@ -38,7 +38,7 @@ class Settings:
     zstep: str = "sqp"
     sqp: SQPSettings = SQPSettings()
     osqp: dict = field(default_factory=lambda: {"eps_abs": 1e-6, "eps_rel": 1e-6, "max_iter": 4000})
-    check_tol: float = 0.3  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
+    check_tol: float = 0.05  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
     check_steps: int = 2  # steps of that rollout checked: only its start is ever applied, the rest is replanned
     brake: float = -3.0  # deceleration of the braking-in-lane fallback (m/s^2)
 
@@ -147,6 +147,8 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
                           f"{why}; braking straight")
     z, Delta, alpha = np.asarray(obs.z0, float), [], []
     lane_y = s.road.centre(s.road.lane_of(z[1]))
+    if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
+        lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
     for _ in range(s.T_p):
         Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
         alpha.append(s.brake if z[3] > 0.0 else 0.0)

@@ -8,7 +8,7 @@ import numpy as np
 
 from data import bicycle
 from planner import admm
-from planner.mpc import J_of, Observation, Settings, StepResult, fallback
+from planner.mpc import Observation, Settings, StepResult, costs, fallback
 from planner.safety import b_i
 
 
@@ -19,26 +19,29 @@ def lateral_path(x, x0, y0, y1, L):
 
 
 def track(s: Settings, z0, y1, L, accel, lookahead=(2.0, 0.6)):
-    """Controls (Delta, alpha) and states Z (4T_p,) following the curve to y1 with constant acceleration `accel`."""
-    z, Delta, alpha, Z = np.asarray(z0, float), [], [], []
+    """Controls Delta, alpha (K, T_p) and states Z (K, 4T_p) of K candidates following the curves to y1 (K,) over
+    lengths L (K,) by pure pursuit, each with its constant acceleration accel (K,)."""
+    z = np.repeat(np.asarray(z0, float)[None], len(y1), 0)
+    Delta, alpha, Z = [], [], []
     wheelbase = s.params.l_f + s.params.l_r
     for _ in range(s.T_p):
-        Ld = max(lookahead[0], lookahead[1] * z[3])
-        target = lateral_path(z[0] + Ld, z0[0], z0[1], y1, L)
-        bearing = np.arctan2(target - z[1], Ld) - z[2]
-        d = float(np.clip(np.arctan(2 * wheelbase * np.sin(bearing) / Ld), *s.delta_box))
-        a = float(np.clip(accel, (s.v_box[0] - z[3]) / s.params.dt, (s.v_box[1] - z[3]) / s.params.dt))
-        z = bicycle.step(z, [d, a], s.params)
+        Ld = np.maximum(lookahead[0], lookahead[1] * z[:, 3])
+        target = lateral_path(z[:, 0] + Ld, z0[0], z0[1], y1, L)
+        bearing = np.arctan2(target - z[:, 1], Ld) - z[:, 2]
+        d = np.clip(np.arctan(2 * wheelbase * np.sin(bearing) / Ld), *s.delta_box)
+        a = np.clip(accel, (s.v_box[0] - z[:, 3]) / s.params.dt, (s.v_box[1] - z[:, 3]) / s.params.dt)
+        z = bicycle.step(z, np.stack([d, a], -1), s.params)
         Delta.append(d)
         alpha.append(a)
         Z.append(z)
-    return np.array(Delta), np.array(alpha), np.concatenate(Z)
+    return np.stack(Delta, 1), np.stack(alpha, 1), np.concatenate(Z, 1)
 
 
 def candidates(s: Settings, z0, lengths, accels):
     """(Delta, alpha, Z) towards the current lane's centre (keep) and y_ref (change), every length (m) and acceleration."""
     targets = sorted({float(s.road.centre(s.road.lane_of(z0[1]))), float(s.y_ref)})
-    return [track(s, z0, y1, L, a) for y1 in targets for L in lengths for a in accels]
+    y1, L, a = (np.array(v, float).ravel() for v in np.meshgrid(targets, lengths, accels, indexing="ij"))
+    return list(zip(*track(s, z0, y1, L, a)))
 
 
 def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths=(8.0, 12.0, 16.0, 24.0, 32.0),
@@ -50,7 +53,8 @@ def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths=(8.0, 12.0, 
     egos = np.stack([np.reshape(Z, (s.T_p, 4))[:, :2] for _, _, Z in cands])
     values = source.values(obs.history, egos)
     b_min = np.array([b_i(v, s.R).min(initial=np.inf) for v in values])
-    J = np.array([J_of(s, obs.u_prev, *c) for c in cands])
+    Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)
+    J = np.array([Phi_1(Delta) + Phi_2(alpha) + Phi_3(Z) for Delta, alpha, Z in cands])
     safe = b_min >= 0.0
     if not safe.any():
         return fallback(s, obs, source, warm, f"no safe candidate (best min b_i {b_min.max():.2f} m^2)")
