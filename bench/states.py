@@ -1,0 +1,91 @@
+"""A fixed set of planning states for benchmarks: the (observation, warm start) pairs that MPC steps saw in closed-loop
+ADMM runs of both scenarios, saved once to an .npz so every benchmark (and every solver) plans from the same states.
+
+    from bench.states import planning_states, settings
+    for st in planning_states():                       # collected on first use, then loaded from the .npz
+        result = mpc.admm_step(settings(st.scenario), st.obs, source, st.warm)
+"""
+from functools import lru_cache
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from data.jobs import CONF_DIR, UserError, atomic_file
+from planner import admm, mpc
+
+DEFAULT_PATH = Path("outputs/bench/states.npz")
+SCENARIOS = ("two_lane", "three_lane")
+
+
+class PlanningState(NamedTuple):
+    """One MPC step's input: the scenario's name, the observation, and the previous plan (None: the episode's first step)."""
+
+    scenario: str
+    obs: mpc.Observation
+    warm: admm.ADMMState | None
+
+
+def config(scenario: str, overrides=()):
+    """The composed `planner` config for `scenario` (Hydra overrides as in the console script)."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("planner", overrides=[f"scenario={scenario}", *overrides])
+
+
+@lru_cache(maxsize=None)
+def settings(scenario: str, overrides: tuple = ()) -> mpc.Settings:
+    """The MPC settings the `planner` command would use on `scenario` (cached: composing a config takes ~50 ms)."""
+    from planner.cli import settings as from_cfg
+
+    cfg = config(scenario, overrides)
+    return from_cfg(cfg, instantiate(cfg.scenario, _convert_="all"))
+
+
+def collect(scenarios=SCENARIOS, per_scenario=15, gradients="analytic", seed=0, overrides=()) -> list[PlanningState]:
+    """Drive each scenario closed loop with ADMM and `gradients`, keep `per_scenario` steps evenly spread over the run."""
+    from planner.closed_loop import drive
+    from planner.gradients import make_source
+
+    out = []
+    for name in scenarios:
+        cfg = config(name, [f"gradients={gradients}", f"seed={seed}", *overrides])
+        scenario = instantiate(cfg.scenario, _convert_="all")
+        source = make_source(cfg.gradients, cfg.predictor, cfg.models_dir, cfg.fd_step, dict(cfg.analytic))
+        s, seen = settings(name, tuple(overrides)), []
+        step = lambda obs, warm: seen.append((obs, warm)) or mpc.admm_step(s, obs, source, warm)  # noqa: E731
+        drive(scenario.make_world(cfg.seed), step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs,
+              cfg.max_steps, cfg.world)
+        keep = np.unique(np.linspace(0, len(seen) - 1, min(per_scenario, len(seen))).round().astype(int))
+        out += [PlanningState(name, *seen[k]) for k in keep]
+    return out
+
+
+def save(states: list[PlanningState], path=DEFAULT_PATH):
+    """Write the states to one .npz (atomically); a missing warm start is stored as NaN with has_warm = False."""
+    T4 = len(next(st.warm for st in states if st.warm is not None).Z)
+    warm = [st.warm or admm.ADMMState(*(np.full(n, np.nan) for n in (T4 // 4, T4 // 4, T4, T4))) for st in states]
+    arrays = {"scenario": np.array([st.scenario for st in states]), "has_warm": np.array([st.warm is not None for st in states])}
+    arrays.update({k: np.stack([getattr(st.obs, k) for st in states]) for k in mpc.Observation._fields})
+    arrays.update({k: np.stack([getattr(w, k) for w in warm]) for k in ("Delta", "alpha", "Z", "mu")})
+    atomic_file(Path(path), lambda tmp: np.savez(tmp, **arrays))
+
+
+def load(path=DEFAULT_PATH) -> list[PlanningState]:
+    """The states saved by `save`; a damaged file is a UserError naming it."""
+    try:
+        with np.load(path) as f:
+            a = {k: f[k] for k in f.files}
+        return [PlanningState(str(a["scenario"][i]), mpc.Observation(a["z0"][i], a["u_prev"][i], a["history"][i]),
+                              admm.ADMMState(a["Delta"][i], a["alpha"][i], a["Z"][i], a["mu"][i]) if a["has_warm"][i] else None)
+                for i in range(len(a["scenario"]))]
+    except (OSError, KeyError, ValueError) as e:
+        raise UserError(f"damaged planning states {path} ({e}); delete it to collect them again") from None
+
+
+def planning_states(path=DEFAULT_PATH, **collect_kwargs) -> list[PlanningState]:
+    """The saved states at `path`, collected (see `collect`) and saved there first if missing."""
+    if not Path(path).exists():
+        save(collect(**collect_kwargs), path)
+    return load(path)
