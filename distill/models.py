@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from hydra.utils import instantiate
-from torch.func import jacrev
+from torch.func import vjp
 
 from data.jobs import UserError
 from distill.predictors import ConstantVelocity
@@ -28,15 +28,19 @@ class TorchPredictor:
         with torch.no_grad():
             return self.module(torch.as_tensor(np.asarray(window), dtype=torch.float32)).double().numpy()
 
-    def phi_jac(self, window):
-        """Next xy (B, M, 2) and J (B, M*2, T_obs*M*2): windows are independent, so one jacrev of the batch sum is exact."""
+    def phi_vjp(self, window, cotangents):
+        """Next xy (B, M, 2) and v^T J (B, k, T_obs*M*2) for cotangents v (B, k, M, 2), by torch.func.vjp."""
         w = torch.as_tensor(np.asarray(window), dtype=torch.float32)
-        b = w.shape[0]
+        v = torch.as_tensor(np.asarray(cotangents), dtype=torch.float32)
         with torch.no_grad():
-            J = jacrev(lambda x: self.module(x).sum(0))(w)  # (M, 2, B, T_obs, M, 2)
-            nxt = self.module(w)
-        J = J.reshape(-1, b, w[0].numel()).permute(1, 0, 2)
-        return nxt.double().numpy(), J.double().numpy()
+            nxt, pullback = vjp(self.module, w)
+            vJ = torch.stack([pullback(v[:, k])[0].reshape(len(w), -1) for k in range(v.shape[1])], dim=1)
+        return nxt.double().numpy(), vJ.double().numpy()
+
+    def phi_jac(self, window):
+        """Next xy (B, M, 2) and the exact J (B, M*2, T_obs*M*2): one vjp per output coordinate (faster than jacrev here)."""
+        b, _, m, _ = np.shape(window)
+        return self.phi_vjp(window, np.tile(np.eye(m * 2).reshape(1, m * 2, m, 2), (b, 1, 1, 1)))
 
 
 class StudentPredictor(TorchPredictor):

@@ -43,7 +43,7 @@ class GeluStudent(nn.Module):
         self.register_buffer("s", torch.tensor(list(s_acc) * (M - 1), dtype=torch.float32))
         sizes = [P.shape[0], *hidden, 2 * (M - 1)]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
-        nn.init.zeros_(self.layers[-1].weight)  # start exactly at constant velocity
+        nn.init.normal_(self.layers[-1].weight, std=1e-3)  # start near constant velocity (not 0: log ||W|| penalty)
         nn.init.zeros_(self.layers[-1].bias)
 
     def forward(self, window):

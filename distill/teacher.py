@@ -17,13 +17,32 @@ def relu_mlp(sizes):
     return nn.Sequential(*layers[:-1])
 
 
+class GRU(nn.Module):
+    """A plain GRU over time (B, T, d_in) -> last hidden state (B, hidden), written out so torch.func can batch it."""
+
+    def __init__(self, d_in, hidden):
+        super().__init__()
+        self.hidden = hidden
+        self.x_gates = nn.Linear(d_in, 3 * hidden)
+        self.h_gates = nn.Linear(hidden, 3 * hidden)
+
+    def forward(self, x):
+        h = x.new_zeros(x.shape[0], self.hidden)
+        for t in range(x.shape[1]):
+            xr, xz, xn = self.x_gates(x[:, t]).chunk(3, dim=-1)
+            hr, hz, hn = self.h_gates(h).chunk(3, dim=-1)
+            r, z = torch.sigmoid(xr + hr), torch.sigmoid(xz + hz)
+            h = (1 - z) * torch.tanh(xn + r * hn) + z * h
+        return h
+
+
 class SocialTeacher(nn.Module):
     """Social GAN's generator made deterministic: encoder GRU, pairwise Pool Net, MLP decoder (scales in m, m/step)."""
 
-    def __init__(self, hidden=128, pool=256, decoder=(256, 256), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+    def __init__(self, hidden=64, pool=128, decoder=(256, 256), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
         super().__init__()
         self.pos_scale, self.vel_scale, self.acc_scale = pos_scale, vel_scale, acc_scale
-        self.encoder = nn.GRU(6, hidden, batch_first=True)
+        self.encoder = GRU(6, hidden)
         self.slot = nn.Parameter(torch.zeros(5, hidden))  # slot 0 is the ego, 1..4 are ordered front to back
         # Pool Net: each car i looks at every car j through (relative position, relative velocity, j's state).
         self.pool = relu_mlp([4 + hidden, pool, pool])
@@ -38,8 +57,7 @@ class SocialTeacher(nn.Module):
         acc = vel[:, 1:] - vel[:, :-1]
         rel = window - window[:, -1:, :1]  # relative to the ego's last position
         steps = torch.cat([rel[:, 2:] / self.pos_scale, vel[:, 1:] / self.vel_scale, acc / self.acc_scale], -1)
-        _, h = self.encoder(steps.permute(0, 2, 1, 3).reshape(b * m, t - 2, 6))
-        h = h[-1].reshape(b, m, -1) + self.slot[:m]
+        h = self.encoder(steps.permute(0, 2, 1, 3).reshape(b * m, t - 2, 6)).reshape(b, m, -1) + self.slot[:m]
 
         last, v_last = rel[:, -1], vel[:, -1]
         d_pos = (last[:, None, :] - last[:, :, None]) / self.pos_scale  # (B, i, j, 2): j seen from i
