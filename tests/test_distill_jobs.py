@@ -1,0 +1,96 @@
+"""The distill job end to end on the tiny dataset: teacher beats constant velocity, resume, student certificate,
+ONNX parity, and one-line errors for missing or corrupt files."""
+import json
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+
+from data import dataset
+from data.jobs import UserError
+from distill import models
+from distill.export import load_onnx
+from distill.train import run
+from tests.conftest import compose_cfg
+
+TEACHER_EPOCHS = 4
+
+
+def job(tiny_dataset, models_dir, run_dir, *overrides):
+    """Run `distill` on the tiny dataset with small settings; returns its metrics."""
+    return run(compose_cfg("distill", [f"dataset_dir={tiny_dataset}", f"models_dir={models_dir}", f"run_dir={run_dir}",
+                                       "trainer.enable_progress_bar=false", *overrides]))
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_dataset, tmp_path_factory):
+    """models_dir holding a tiny teacher and student, with both jobs' metrics."""
+    models_dir = tmp_path_factory.mktemp("models")
+    runs = tmp_path_factory.mktemp("runs")
+    teacher = job(tiny_dataset, models_dir, runs / "teacher", "model=teacher", f"trainer.max_epochs={TEACHER_EPOCHS}")
+    student = job(tiny_dataset, models_dir, runs / "student", "model=student", "trainer.max_epochs=2",
+                  "model.certificate.samples=1500")
+    return models_dir, teacher, student, runs
+
+
+def test_tiny_teacher_beats_constant_velocity(trained):
+    _, r, _, _ = trained
+    assert r["ade_1step_m"] < r["cv_ade_1step_m"]
+    assert r["ade_rollout_m"] < r["cv_ade_rollout_m"]
+    assert 1e5 <= r["params"] <= 1e6
+
+
+def test_student_job_certifies_and_logs(trained):
+    models_dir, _, r, _ = trained
+    doc = json.loads((models_dir / "certificate.json").read_text())
+    for k in ("s_x", "s_y", "theta_x", "theta_y", "L", "rho_bound", "rho_used"):
+        assert np.isfinite(doc["constants_m"][k]) and doc["constants_m"][k] > 0
+    assert doc["sampled"]["emp_samples"] >= 1500
+    assert all(v <= 1.0 for v in doc["ratios"].values())
+    runs = mlflow.search_runs(experiment_names=["distill"], filter_string="params.model = 'student'")
+    names = ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "jac_rel_err", "params", "forward_us", "cert_s_x",
+             "cert_s_y", "cert_theta_x", "cert_theta_y", "cert_L", "cert_rho_bound", "emp_theta_max", "emp_L_max")
+    assert all(f"metrics.{n}" in runs.columns and np.isfinite(runs[f"metrics.{n}"].iloc[0]) for n in names)
+    assert r["jac_rel_err"] < 1.0
+
+
+@pytest.mark.parametrize("name", ["teacher", "student"])
+def test_onnx_matches_torch(trained, tiny_dataset, name):
+    models_dir = trained[0]
+    X = dataset.load(tiny_dataset, "test")["X"]
+    torch_pred, onnx_pred = models.load(name, models_dir), load_onnx(name, models_dir)
+    for w in (X[:1], X[:37]):
+        assert np.abs(onnx_pred.phi(w) - torch_pred.phi(w)).max() < 1e-4
+    nxt, J = torch_pred.phi_jac(X[:3])
+    assert nxt.shape == (3, 5, 2) and J.shape == (3, 10, 80)
+
+
+def test_resume_continues_from_checkpoint(trained, tiny_dataset, tmp_path):
+    ckpt = trained[0] / "teacher.ckpt"
+    saved_epoch = torch.load(ckpt, map_location="cpu", weights_only=True)["epoch"]
+    job(tiny_dataset, tmp_path, tmp_path / "run", "model=teacher", f"trainer.max_epochs={TEACHER_EPOCHS + 2}",
+        f"ckpt_path={ckpt}")
+    last = mlflow.search_runs(experiment_names=["distill"], order_by=["attributes.start_time DESC"], max_results=1)
+    epochs = [m.value for m in mlflow.MlflowClient().get_metric_history(last.run_id.iloc[0], "epoch")]
+    assert min(epochs) == saved_epoch + 1  # picks up after the saved epoch, not at 0
+    assert (tmp_path / "teacher.ckpt").exists()
+
+
+def test_corrupt_files_name_themselves(trained, tmp_path):
+    models_dir = trained[0]
+    (tmp_path / "teacher.ckpt").write_bytes((models_dir / "teacher.ckpt").read_bytes()[:5000])
+    with pytest.raises(UserError, match="teacher.ckpt"):
+        models.load("teacher", tmp_path)
+    (tmp_path / "student.onnx").write_bytes(b"not an onnx file")
+    with pytest.raises(UserError, match="student.onnx"):
+        load_onnx("student", tmp_path)
+
+
+def test_missing_model_and_dataset_name_the_command(tiny_dataset, tmp_path):
+    with pytest.raises(UserError, match="distill model=student"):
+        models.load("student", tmp_path)
+    with pytest.raises(UserError, match="distill model=teacher"):
+        job(tiny_dataset, tmp_path, tmp_path / "run", "model=student")  # the student needs a teacher
+    with pytest.raises(UserError, match="make-dataset"):
+        job(tmp_path / "nope", tmp_path, tmp_path / "run", "model=teacher")
