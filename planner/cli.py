@@ -3,6 +3,7 @@
 `planner --gradients=surrogate` (or `--gradients surrogate`) is the same as the Hydra override `gradients=surrogate`.
 """
 import sys
+import tempfile
 from pathlib import Path
 
 import hydra
@@ -12,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from data.jobs import CONF_DIR, UserError, guarded, mlflow_run
-from planner import closed_loop, mpc, nnmpc, report
+from planner import batch, closed_loop, mpc, nnmpc, report
 from planner.gradients import make_source
 from planner.zstep import ZSTEPS
 
@@ -55,28 +56,40 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
         check_tol=saf.check_tol, check_steps=saf.check_steps, brake=cfg.brake)
 
 
-def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str):
-    """One seeded closed-loop episode with `method`."""
+def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None):
+    """One closed-loop episode with `method`, seeded by `seed` (default cfg.seed)."""
     if method == "admm":
         step = lambda obs, warm: mpc.admm_step(s, obs, source, warm)  # noqa: E731
     else:
         step = lambda obs, warm: nnmpc.nnmpc_step(s, obs, source, warm, cfg.nnmpc.lengths, cfg.nnmpc.accels)  # noqa: E731
-    world = scenario.make_world(cfg.seed)
+    world = scenario.make_world(cfg.seed if seed is None else seed)
     return closed_loop.drive(world, step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world)
+
+
+def writable(out_dir: Path) -> Path:
+    """`out_dir`, created and checked by writing a probe file; otherwise one UserError, before anything is written."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out_dir):
+            pass
+    except OSError as e:
+        raise UserError(f"cannot write to the output folder {out_dir} ({e.strerror or e}); choose another with out_dir=...")
+    return out_dir
 
 
 @guarded
 def run(cfg: DictConfig) -> dict:
-    """Drive, log and summarise; returns {method: metrics}."""
+    """Drive, log and summarise (cfg.episodes > 0: batch statistics, see planner.batch); returns {method: metrics}."""
     for key, options in CHOICES.items():
         if cfg[key] not in options:
             raise UserError(f"unknown {key} '{cfg[key]}'; choose one of {', '.join(options)}")
     scenario = instantiate(cfg.scenario, _convert_="all")
     source = make_source(cfg.gradients, cfg.predictor, cfg.models_dir, cfg.fd_step, dict(cfg.analytic))
     s = settings(cfg, scenario)
-    out_dir = Path(cfg.out_dir or HydraConfig.get().runtime.output_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir))
     methods = ["admm", "nnmpc"] if cfg.method == "both" else [cfg.method]
+    if cfg.episodes:
+        return batch.run(cfg, scenario.name, source, methods, out_dir)
     episodes = {m: drive(cfg, scenario, source, s, m) for m in methods}
     title = f"{scenario.name}, gradients={source.name}, predictor={source.predictor.name}, world={cfg.world}"
     shared = report.figures(episodes, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) \

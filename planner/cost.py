@@ -1,5 +1,6 @@
 """The paper's cost J = Phi_1(Delta) + Phi_2(alpha) + Phi_3(Z) as exact quadratic forms (Table I weights)."""
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -32,11 +33,17 @@ class Quadratic(NamedTuple):
 
 def input_cost(T_p, lam, lam_rate, previous):
     """Phi_1 (or Phi_2): sum lam u(tau)^2 + lam_rate (u(tau) - u(tau-1))^2, u(-1) = `previous` (the last applied input)."""
-    diff = sparse.eye(T_p) - sparse.eye(T_p, k=-1)  # row tau: u(tau) - u(tau-1), with u(-1) moved to the offset
+    P, diff = _input_form(T_p, lam, lam_rate)
     e0 = np.zeros(T_p)
     e0[0] = previous
-    P = 2.0 * (lam * sparse.eye(T_p) + lam_rate * diff.T @ diff)
-    return Quadratic(sparse.csc_matrix(P), -2.0 * lam_rate * (diff.T @ e0), lam_rate * previous**2)
+    return Quadratic(P, -2.0 * lam_rate * (diff.T @ e0), lam_rate * previous**2)
+
+
+@lru_cache(maxsize=64)
+def _input_form(T_p, lam, lam_rate):
+    """P of input_cost and its difference operator: fixed per weights, and scipy.sparse construction costs ~1 ms a step."""
+    diff = sparse.eye(T_p, format="csc") - sparse.eye(T_p, k=-1, format="csc")  # row tau: u(tau) - u(tau-1), u(-1) in q
+    return sparse.csc_matrix(2.0 * (lam * sparse.eye(T_p) + lam_rate * diff.T @ diff)), diff
 
 
 def Phi_1(T_p, w: Weights, delta_prev):
@@ -49,6 +56,7 @@ def Phi_2(T_p, w: Weights, a_prev):
     return input_cost(T_p, w.lambda_a, w.lambda_da, a_prev)
 
 
+@lru_cache(maxsize=64)  # the same every MPC step of a run; callers never modify P or q in place
 def Phi_3(T_p, w: Weights, y_ref, v_ref):
     """Lateral deviation from y_ref (m) and speed error from v_ref (m/s) over z(1..T_p); Z stacks [x, y, psi, v]."""
     S_y = sparse.csc_matrix((np.ones(T_p), (np.arange(T_p), 4 * np.arange(T_p) + 1)), shape=(T_p, 4 * T_p))

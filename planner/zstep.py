@@ -3,6 +3,7 @@
 A Z-step is built once per MPC step from (Phi_3, C, rho, box, safety, settings) and called per ADMM iteration as
 zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info), where zstate is the solver's own carried state (None at first).
 """
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -25,6 +26,23 @@ class SQPSettings(NamedTuple):
     slack_tol: float = 1e-3  # slack (m^2) above which the linearisation counts as infeasible
 
 
+@lru_cache(maxsize=8)
+def constraint_pattern(n_Z, n_b):
+    """G = [I 0; mask I; 0 I] over x = [Z; s] (CSC, sorted), its (row, col, data) triplets, where the d b_i / d Z values
+    go, and which Z entries the trust region bounds (the ego's x, y); fixed per (n_Z, n_b), so built once."""
+    # b_i at step t depends on the ego's x, y at steps <= t: that lower-triangular block pattern is fixed.
+    T_p = n_Z // 4
+    t_row = np.repeat(np.arange(T_p)[None], n_b // T_p, 0).reshape(-1)
+    t_col, k_col = np.arange(n_Z) // 4, np.arange(n_Z) % 4
+    mask = (t_col[None] <= t_row[:, None]) & (k_col[None] < 2)
+    G = sparse.bmat([[sparse.eye(n_Z), None], [sparse.csc_matrix(mask.astype(float)), sparse.eye(n_b)],
+                     [None, sparse.eye(n_b)]], format="csc")
+    G.sort_indices()
+    cols = np.repeat(np.arange(G.shape[1]), np.diff(G.indptr))
+    is_b = (G.indices >= n_Z) & (G.indices < n_Z + n_b) & (cols < n_Z)
+    return G, G.indices, cols, G.data.copy(), is_b, np.tile([True, True, False, False], T_p)
+
+
 class SQPZStep:
     """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. box, b_i(Z) >= 0, by trust-region SQP over x = [Z; s]."""
 
@@ -35,24 +53,14 @@ class SQPZStep:
         n_b = (safety.history.shape[1] - 1) * (n_Z // 4)
         self.n_Z, self.n_b = n_Z, n_b
         self.H = (Phi_3.P + rho * C.T @ C).tocsc()  # the exact Hessian of the smooth part; fixed while rho is
+        self.H_dense = self.H.toarray()  # 4T_p square: a dense product beats a sparse one from Python
         P = sparse.block_diag([self.H, sparse.csc_matrix((n_b, n_b))], format="csc")
-        # b_i at step t depends on the ego's x, y at steps <= t: that lower-triangular block pattern is fixed.
-        T_p = n_Z // 4
-        t_row = np.repeat(np.arange(T_p)[None], n_b // T_p, 0).reshape(-1)
-        t_col, k_col = np.arange(n_Z) // 4, np.arange(n_Z) % 4
-        self.mask = (t_col[None] <= t_row[:, None]) & (k_col[None] < 2)
-        G = sparse.bmat([[sparse.eye(n_Z), None], [sparse.csc_matrix(self.mask.astype(float)), sparse.eye(n_b)],
-                         [None, sparse.eye(n_b)]], format="csc")
-        G.sort_indices()
-        cols = np.repeat(np.arange(G.shape[1]), np.diff(G.indptr))
-        self.G_rows, self.G_cols, self.G_data = G.indices, cols, G.data.copy()
-        self.is_b = (self.G_rows >= n_Z) & (self.G_rows < n_Z + n_b) & (self.G_cols < n_Z)
-        self.xy = np.tile([True, True, False, False], T_p)
+        G, self.G_rows, self.G_cols, self.G_data, self.is_b, self.xy = constraint_pattern(n_Z, n_b)
         self.qp = QP(P, np.zeros(n_Z + n_b), G, np.zeros(G.shape[0]), np.full(G.shape[0], np.inf), osqp_settings)
 
     def model(self, Z, lin_q):
         """The exact quadratic part 1/2 Z'HZ + lin_q'Z."""
-        return 0.5 * Z @ (self.H @ Z) + lin_q @ Z
+        return 0.5 * Z @ (self.H_dense @ Z) + lin_q @ Z
 
     def merit(self, Z, lin_q, b):
         """Quadratic part plus the safety term: L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
@@ -81,8 +89,9 @@ class SQPZStep:
             Z_new, s = x[:self.n_Z], x[self.n_Z:]
             slack = float(max(s.max(initial=0.0), 0.0))
             b_new = self.safety(Z_new)
-            predicted = self.merit(Z, lin_q, b) - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
-            actual = self.merit(Z, lin_q, b) - self.merit(Z_new, lin_q, b_new)
+            here = self.merit(Z, lin_q, b)
+            predicted = here - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
+            actual = here - self.merit(Z_new, lin_q, b_new)
             step = float(np.max(np.abs(Z_new - Z)))
             if actual >= 0.1 * predicted or predicted <= 1e-12:
                 if actual >= 0.75 * predicted and step >= 0.99 * radius:
