@@ -52,8 +52,8 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
         weights=instantiate(cfg.cost), y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road,
         params=scenario.params, T_p=cfg.T_p, rho=cfg.rho, R=R, delta_box=tuple(lim.delta), a_box=tuple(lim.a),
         psi_box=tuple(lim.psi), v_box=tuple(lim.v), y_margin=lim.y_margin, linearize=cfg.linearize,
-        admm=dict(cfg.admm), zstep=cfg.zstep, sqp=instantiate(cfg.sqp), osqp=dict(cfg.osqp),
-        check_tol=saf.check_tol, check_steps=saf.check_steps, brake=cfg.brake)
+        admm=dict(cfg.admm), zstep=cfg.zstep, sqp=instantiate(cfg.sqp), pygranso=instantiate(cfg.pygranso),
+        osqp=dict(cfg.osqp), check_tol=saf.check_tol, check_steps=saf.check_steps, brake=cfg.brake)
 
 
 def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None):

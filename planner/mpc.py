@@ -11,6 +11,7 @@ import numpy as np
 from data import bicycle
 from data.world import Road, steer_to
 from planner import admm, cost, dynamics
+from planner.pygranso_zstep import PyGransoSettings
 from planner.zstep import ZSTEPS, SQPSettings
 from planner.qp import SolverFailure
 from planner.safety import Safety, b_i
@@ -37,6 +38,7 @@ class Settings:
     admm: dict = field(default_factory=lambda: {"max_iters": 50, "tol_F": 1e-3, "tol_step": 1e-3})
     zstep: str = "sqp"
     sqp: SQPSettings = SQPSettings()
+    pygranso: PyGransoSettings = PyGransoSettings()
     osqp: dict = field(default_factory=lambda: {"eps_abs": 1e-6, "eps_rel": 1e-6, "max_iter": 4000})
     check_tol: float = 0.05  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
     check_steps: int = 2  # steps of that rollout checked: only its start is ever applied, the rest is replanned
@@ -117,7 +119,7 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
         dyn, Phi_1, Phi_2, Phi_3, s.rho,
         admm.box_qp(Phi_1, dyn.A, s.rho, *s.delta_box, s.osqp),
         admm.box_qp(Phi_2, dyn.B, s.rho, *s.a_box, s.osqp),
-        ZSTEPS[s.zstep](Phi_3, dyn.C, s.rho, lo, hi, safety, s.sqp, s.osqp),
+        ZSTEPS[s.zstep](Phi_3, dyn.C, s.rho, lo, hi, safety, getattr(s, s.zstep), s.osqp),  # its own config block
     )
     return prob, start._replace(Z=np.clip(start.Z, lo, hi))
 

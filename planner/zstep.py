@@ -9,6 +9,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import sparse
 
+from planner.pygranso_zstep import PyGransoZStep
 from planner.qp import QP
 
 
@@ -106,4 +107,4 @@ class SQPZStep:
                            "b_min": float(b_Z.min(initial=np.inf))}
 
 
-ZSTEPS = {"sqp": SQPZStep}
+ZSTEPS = {"sqp": SQPZStep, "pygranso": PyGransoZStep}

@@ -1,0 +1,202 @@
+"""The paper's own Z-update (Sec. IV-C, eq. (10)-(11); hard b_i(Z) >= 0 as in its simulation) solved by PyGranso.
+
+PyGranso (Liang, Mitchell, Sun; a torch port of GRANSO) is a BFGS-SQP method: it takes the objective and the
+inequality constraints c(Z) <= 0 as torch functions and builds their gradients by autograd, one backward pass per
+constraint. With gradients=teacher the constraints are the teacher's own torch rollout (native autodiff); with any other
+source b_i(Z) is a custom autograd function whose backward is that source's d b_i / d Z, so every source is comparable.
+`zstep=pygranso` selects it; `pip install -e '.[pygranso]'` installs it.
+"""
+import contextlib
+import importlib.util
+import io
+import sys
+import types
+import warnings
+from typing import NamedTuple
+
+import numpy as np
+
+from data.jobs import UserError
+from distill.rollout import rollout
+from planner.gradients import Autodiff
+from planner.qp import SolverFailure
+from planner.safety import b_i
+
+TERMINATION = {  # PyGranso's soln.termination_code, in its own words (pygranso.pygranso docstring)
+    0: "converged: stationarity <= opt_tol, feasible to tolerance",
+    1: "relative decrease <= rel_tol, feasible to tolerance",
+    2: "objective target reached",
+    3: "halted by halt_log_fn",
+    4: "max iterations (maxit)",
+    5: "clock limit (maxclocktime)",
+    6: "line search bracketed a minimizer, Wolfe failed at a feasible point",
+    7: "line search bracketed a minimizer, Wolfe failed at an infeasible point",
+    8: "line search failed to bracket a minimizer",
+    9: "no descent direction",
+    11: "user function raised",
+    12: "QP solver error aborted steering",
+    13: "unknown error",
+}
+
+
+class PyGransoSettings(NamedTuple):
+    """PyGranso's limits and tolerances per Z-update: iterations, stationarity, violation (m^2 or state units), clock (s)."""
+
+    maxit: int = 30
+    opt_tol: float = 1e-6
+    viol_ineq_tol: float = 1e-6
+    mu0: float = 1.0  # initial penalty weight on the objective
+    limited_mem_size: int = 0  # 0: full BFGS inverse Hessian (the paper's BFGS-SQP); > 0: L-BFGS memory
+    maxclocktime: float = float("inf")
+    warm_hessian: bool = True  # carry the BFGS inverse Hessian and mu across the ADMM iterations of one MPC step
+    infeasible_tol: float = 1e-3  # max violation (m^2) at which the Z-update counts as infeasible, like sqp.slack_tol
+
+
+@contextlib.contextmanager
+def _pygranso_1_2_compat():
+    """What pygranso 1.2.0 needs at import only: a `gurobipy` name (used for QPsolver='gurobi' alone) and numpy's `Inf`.
+
+    Both are put in place for the import and taken away after it, so nothing else in the process sees them.
+    """
+    import numpy._core.numeric as numeric
+
+    stub_gurobi = importlib.util.find_spec("gurobipy") is None
+    stub_inf = not hasattr(numeric, "Inf")  # numpy 2 removed it; pygransoOptions imports it from numpy.core.numeric
+    if stub_gurobi:
+        sys.modules["gurobipy"] = types.SimpleNamespace(GRB=None)
+    if stub_inf:
+        numeric.Inf = np.inf
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # numpy.core.* paths in pygranso
+            yield
+    finally:
+        if stub_gurobi:
+            sys.modules.pop("gurobipy", None)
+        if stub_inf:
+            del numeric.Inf
+
+
+def import_pygranso():
+    """PyGranso's solver and its option struct; one UserError naming the extra when it is not installed."""
+    try:
+        with _pygranso_1_2_compat():
+            from pygranso.pygranso import pygranso
+            from pygranso.pygransoStruct import pygransoStruct
+    except ModuleNotFoundError as e:
+        if (e.name or "").split(".")[0] != "pygranso":
+            raise
+        raise UserError("zstep=pygranso needs PyGranso, which is not installed; run pip install -e '.[pygranso]'") from None
+    return pygranso, pygransoStruct
+
+
+def linear_term(Phi_3, C, rho, mu, c_Z):
+    """q with Phi_3 + mu'CZ + rho/2 ||CZ - c_Z||^2 = 1/2 Z'(P_3 + rho C'C)Z + q'Z + const."""
+    return Phi_3.q + C.T @ (mu - rho * c_Z)
+
+
+def source_b(safety):
+    """b_i(Z) (N*T_p,) in m^2 as a torch function whose backward is the gradient source's d b_i / d Z."""
+    import torch
+
+    class SourceB(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, Z):
+            ctx.save_for_backward(Z)
+            return torch.from_numpy(safety(Z.detach().numpy()))
+
+        @staticmethod
+        def backward(ctx, grad):
+            (Z,) = ctx.saved_tensors
+            _, Jb = safety.linearize(Z.numpy())  # cached per Z: PyGranso asks once per constraint
+            return grad @ torch.from_numpy(Jb)
+
+    return SourceB.apply
+
+
+def autodiff_b(safety, source: Autodiff):
+    """b_i(Z) (N*T_p,) in m^2 through the predictor's own torch rollout: PyGranso back-propagates through the network."""
+    import torch
+
+    module = source.module
+    weights = {k: v.detach() for k, v in module.named_parameters()}  # the network is fixed: no parameter gradients
+    phi = lambda w: torch.func.functional_call(module, weights, (w,))  # noqa: E731
+    history = torch.as_tensor(safety.history, dtype=source.dtype)[None]
+
+    def b(Z):
+        ego = Z.reshape(safety.T_p, 4)[None, :, :2].to(source.dtype)
+        return b_i(rollout(phi, history, ego)[0].double(), safety.R).reshape(-1)
+
+    return b
+
+
+class PyGransoZStep:
+    """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. -b_i(Z) <= 0 and the box, by PyGranso's BFGS-SQP."""
+
+    def __init__(self, Phi_3, C, rho, lo, hi, safety, settings: PyGransoSettings, osqp_settings=None):
+        import torch
+
+        self.pygranso, self.Struct = import_pygranso()
+        self.torch, self.Phi_3, self.C, self.rho, self.safety, self.s = torch, Phi_3, C, rho, safety, settings
+        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
+        self.H = torch.as_tensor((Phi_3.P + rho * C.T @ C).toarray())  # the smooth part's exact Hessian
+        self.i_lo, self.i_hi = np.flatnonzero(np.isfinite(self.lo)), np.flatnonzero(np.isfinite(self.hi))
+        self.b = autodiff_b(safety, safety.source) if isinstance(safety.source, Autodiff) else source_b(safety)
+
+    def c(self, Z):
+        """Inequality constraints c(Z) <= 0: -b_i(Z) (m^2), then z_min - Z and Z - z_max on the finite bounds."""
+        torch = self.torch
+        return torch.cat([-self.b(Z), torch.from_numpy(self.lo[self.i_lo]) - Z[self.i_lo],
+                          Z[self.i_hi] - torch.from_numpy(self.hi[self.i_hi])])
+
+    def options(self, Z, zstate):
+        """PyGranso's options: quiet, double precision, warm start at Z (and the carried BFGS state and mu)."""
+        opts = self.Struct()
+        opts.x0 = self.torch.as_tensor(Z).reshape(-1, 1)
+        opts.print_level = 0
+        opts.quadprog_info_msg = False
+        opts.maxit, opts.opt_tol, opts.viol_ineq_tol = self.s.maxit, self.s.opt_tol, self.s.viol_ineq_tol
+        opts.limited_mem_size, opts.maxclocktime, opts.mu0 = self.s.limited_mem_size, self.s.maxclocktime, self.s.mu0
+        if self.s.warm_hessian and zstate is not None:
+            H, opts.mu0 = zstate
+            if self.s.limited_mem_size:
+                opts.limited_mem_warm_start = H
+            elif H is not None:
+                opts.H0, opts.scaleH0 = H, False  # a learned H0 is already scaled; PyGranso scales only the identity
+        return opts
+
+    def carried(self, H):
+        """The BFGS state to warm-start the next Z-update: L-BFGS as is; a full inverse Hessian only if numerically PD."""
+        if self.s.limited_mem_size:
+            return H
+        H = 0.5 * (H + H.T)
+        return H if self.torch.linalg.cholesky_ex(H).info == 0 else None  # PyGranso rejects an H0 that is not PD
+
+    def __call__(self, Z, mu, c_Z, zstate=None):
+        """Z_{k+1} from Z_k; zstate is (BFGS state, mu); info: PyGranso's termination code and reason, iterations, b_min."""
+        torch = self.torch
+        lin_q = torch.as_tensor(linear_term(self.Phi_3, self.C, self.rho, mu, c_Z))
+        H, Struct = self.H, self.Struct
+
+        def combined(X):
+            ci = Struct()
+            ci.c = self.c(X.Z)
+            return 0.5 * X.Z @ (H @ X.Z) + lin_q @ X.Z, ci, None
+
+        Z0 = np.clip(Z, self.lo, self.hi)
+        printed = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(printed):  # OSQP 1.x prints a line per polish, PyGranso its tracebacks
+                soln = self.pygranso(var_spec={"Z": [len(Z0)]}, combined_fn=combined,
+                                     user_opts=self.options(Z0, zstate))
+        except SystemExit:  # PyGranso exits when the functions fail at x0 (e.g. non-finite values)
+            raise SolverFailure(f"PyGranso could not start: {printed.getvalue().strip().splitlines()[-1:]}") from None
+        point = getattr(soln, "best", None) or soln.most_feasible  # best feasible to tolerance, else least violating
+        Z_new = point.x.detach().reshape(-1).numpy().astype(float)
+        b = self.safety(Z_new)
+        violation = float(max(-b.min(initial=np.inf), np.max(self.lo - Z_new), np.max(Z_new - self.hi), 0.0))
+        code = int(soln.termination_code)
+        info = {"termination": code, "termination_reason": TERMINATION.get(code, "unknown"),
+                "pygranso_iters": int(soln.iters), "fn_evals": int(soln.fn_evals), "slack": violation,
+                "infeasible": violation > self.s.infeasible_tol, "b_min": float(b.min(initial=np.inf))}
+        return Z_new, (self.carried(soln.H_final), float(soln.final.mu)), info
