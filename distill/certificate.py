@@ -29,7 +29,7 @@ def ego_columns(t_obs=T_OBS, m=M):
     return np.array([t * m * 2 + c for t in range(t_obs) for c in range(2)])
 
 
-def constants(weights, s, box, s_acc):
+def constants(weights, s, box):
     """s_x, s_y (A1), theta_x, theta_y (A2), L (A3) in metres from the student's float64 weights [(W, b)] and head s."""
     cols = ego_columns()
     Ws = [W for W, _ in weights]
@@ -45,7 +45,7 @@ def constants(weights, s, box, s_acc):
     theta = s * entry
     L_k = s * (row * hess + G2_TANH * (row * lip) ** 2)
     return {
-        "s_x": box["x"] + box["dx"] + s_acc[0], "s_y": box["y"] + box["dy"] + s_acc[1],
+        "s_x": box["x"] + box["dx"] + s[0], "s_y": box["y"] + box["dy"] + s[1],  # |last + velocity + s tanh|
         "theta_x": float(theta[0::2].max()), "theta_y": float(theta[1::2].max()), "L": float(L_k.max()),
     }
 
@@ -104,7 +104,7 @@ def smallest_positive_sv(X, tol=1e-12):
     return float(sv[sv > tol * sv[0]].min())
 
 
-def rho_bound(c, box, cost, t_p=8, n_others=4, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, dt=0.2):
+def rho_bound(c, box, cost, t_p=8, n_others=M - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, dt=0.2):
     """Theorem 1: rho > max{1, (1 + 2 sigma_min(C)) L_J M}, with Lemma 3's L_1, L_2, L_3, L_g; returns every term.
 
     Assumptions: the ego's own |x| <= box.x and |y| <= box.y over the horizon (x_max, y_max); one multiplier

@@ -7,6 +7,8 @@ import lightning as L
 import torch
 from hydra.utils import instantiate
 
+from distill.student import M, T_OBS
+
 
 class _Task(L.LightningModule):
     """Shared parts: the network from its config dict, AdamW with a cosine schedule over the run."""
@@ -50,8 +52,13 @@ class StudentTask(_Task):
     """Sobolev distillation: squared output error / scale_m^2 + jac_weight * squared error of the random projections
     v^T J (an unbiased estimate of the Jacobian error's Frobenius norm) + the spectral penalty."""
 
-    def __init__(self, net: dict, lr=3e-3, weight_decay=0.0, scale_m=0.01, jac_weight=1.0, spectral_weight=0.0):
+    def __init__(self, net: dict, lr=3e-3, weight_decay=0.0, scale_m=0.01, jac_weight=1.0, ego_jac_weight=1.0,
+                 spectral_weight=0.0):
         super().__init__(net, lr, weight_decay)
+        # d others / d ego is small beside the others' own dynamics, yet it is the interaction the planner uses
+        columns = torch.ones(T_OBS, M, 2)
+        columns[:, 0] = ego_jac_weight
+        self.register_buffer("columns", columns.reshape(-1), persistent=False)
 
     def spectral_penalty(self):
         """Sum of log spectral norms of the layers (first with P folded): the log of the certificate's product."""
@@ -67,7 +74,7 @@ class StudentTask(_Task):
                             for k in range(v.shape[1])], dim=1)
         err = (y_s - y_t)[:, 1:]
         out_loss = (err / self.hparams.scale_m).pow(2).mean()
-        jac_loss = (vJ_s - vJ_t).pow(2).mean()
+        jac_loss = ((vJ_s - vJ_t).pow(2) * self.columns).mean()
         loss = out_loss + self.hparams.jac_weight * jac_loss
         if self.hparams.spectral_weight:
             loss = loss + self.hparams.spectral_weight * self.spectral_penalty()

@@ -39,13 +39,12 @@ def fit(cfg: DictConfig, run_id, teacher):
 def certify(cfg_cert, predictor, windows, rng):
     """Certificate constants + rho bound, and the sampled check on data, planner-like and box windows (in metres)."""
     box = dict(cfg_cert.box)
-    s_acc = predictor.s[:2]
-    c = certificate.constants(predictor.weights, predictor.s, box, s_acc)
-    c.update(certificate.rho_bound(c, box, dict(cfg_cert.cost), cfg_cert.T_p, 4, cfg_cert.lambda_s,
+    c = certificate.constants(predictor.weights, predictor.s, box)
+    c.update(certificate.rho_bound(c, box, dict(cfg_cert.cost), cfg_cert.T_p, lambda_s=cfg_cert.lambda_s,
                                    **dict(cfg_cert.typical)))
     c["rho_used"] = float(cfg_cert.rho_used)
     data = windows - windows[:, -1:, :1]  # ego-centred frame; gradients do not depend on it
-    n_pert = max(0, min(len(data), cfg_cert.samples // 3))
+    n_pert = cfg_cert.samples // 3  # drawn with replacement, each with its own perturbation
     pert = planner_like(data[rng.integers(0, len(data), n_pert)], rng, lat_rate=0.8, dv=0.6, dx=4.0, other_speed=0.3)
     boxed = box_windows(max(0, cfg_cert.samples - len(data) - n_pert), rng, box)
     sample = np.concatenate([data, pert, boxed])

@@ -54,7 +54,7 @@ def test_student_jacobian_matches_autodiff_and_finite_differences(student, windo
 
 
 def test_certificate_bounds_sampled_gradients_and_hessians(student, windows):
-    cert = certificate.constants(student.weights, student.s, BOX, student.s[:2])
+    cert = certificate.constants(student.weights, student.s, BOX)
     emp = certificate.sampled(TorchPredictor("student", student.module).phi_jac,
                               lambda w: student.jac_cols(w, certificate.ego_columns()), windows)
     certificate.verify(cert, emp)
@@ -66,7 +66,7 @@ def test_certificate_bounds_sampled_gradients_and_hessians(student, windows):
 
 
 def test_violated_bound_fails_the_check(student, windows):
-    cert = certificate.constants(student.weights, student.s, BOX, student.s[:2])
+    cert = certificate.constants(student.weights, student.s, BOX)
     emp = certificate.sampled(TorchPredictor("student", student.module).phi_jac,
                               lambda w: student.jac_cols(w, certificate.ego_columns()), windows)
     too_small = {**cert, "L": 0.5 * emp["emp_L_max"]}
