@@ -2,7 +2,7 @@
 
 Structure it exploits: a predictor that moves with the traffic (phi(window + c) = phi(window) + c along the road)
 has a Jacobian that depends on relative positions only, so the network reads the window relative to the ego's last
-position (plus, optionally, absolute coordinates such as y, where lanes sit at fixed places). It predicts the
+position, in velocities and accelerations (plus, optionally, absolute coordinates such as y, if lanes matter). It predicts the
 standardised deviation from the training mean Jacobian, so the large constant-velocity part is exact by construction
 and its capacity goes to the interaction terms.
 """
@@ -19,7 +19,7 @@ class JacobianNet(nn.Module):
     def __init__(self, T_obs=8, M=5, hidden=256, depth=3, absolute="y"):
         super().__init__()
         self.T_obs, self.M, self.absolute = T_obs, M, [AXES[a] for a in absolute]
-        n_in, n_out = T_obs * M * 2 + len(self.absolute), M * 2 * T_obs * M * 2
+        n_in, n_out = (1 + (T_obs - 1) + (T_obs - 2)) * M * 2 + len(self.absolute), M * 2 * T_obs * M * 2
         layers, width = [], n_in
         for _ in range(depth):
             layers += [nn.Linear(width, hidden), nn.SiLU()]
@@ -29,10 +29,17 @@ class JacobianNet(nn.Module):
             self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
 
     def features(self, window):
-        """(B, n_in): the window relative to the ego's last xy, then the chosen absolute coordinates of that point."""
+        """(B, n_in): kinematic coordinates of the window, the basis the predictors themselves read.
+
+        Positions relative to the ego's last xy (last step only), every per-step velocity and acceleration (m per step,
+        per step^2), then the chosen absolute coordinates of the ego's last xy. Velocities and accelerations are small
+        differences of large positions; handing them over directly spares the network learning to subtract.
+        """
         anchor = window[:, -1:, :1]
-        rel = (window - anchor).flatten(1)
-        return torch.cat([rel, anchor.flatten(1)[:, self.absolute]], dim=1)
+        vel = window[:, 1:] - window[:, :-1]
+        acc = vel[:, 1:] - vel[:, :-1]
+        parts = [(window[:, -1:] - anchor).flatten(1), vel.flatten(1), acc.flatten(1), anchor.flatten(1)[:, self.absolute]]
+        return torch.cat(parts, dim=1)
 
     def standardised(self, window):
         """Network output: (J - J_mean) / J_std, flattened (B, M*2*T_obs*M*2)."""
