@@ -77,7 +77,7 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs=8, max_steps=
                         "psi": world.z[0, 2], "v": world.z[0, 3], "delta": u[0], "a": u[1], "lane": lane,
                         "in_target": int(lane == target_lane), "iterations": result.iters, "stop_reason": result.reason,
                         "cost": result.J, "F_norm": result.F_norm, "b_min": result.b_min, "slack": result.slack,
-                        "fallback": result.fallback, "step_ms": step_ms,
+                        "fallback": result.fallback, "zstep_stop": result.zstop, "step_ms": step_ms,
                         "d_min_m": float(np.min(np.hypot(*(world.z[1:, :2] - world.z[0, :2]).T)))})
     ep.states = np.array(ep.states)
     ep.controls = np.array(ep.controls).reshape(-1, 2)

@@ -65,6 +65,7 @@ class StepResult(NamedTuple):
     b_min: float
     slack: float
     fallback: str  # "" when the solver's plan was applied
+    zstop: str = ""  # why the last Z-update stopped, where its solver says (PyGranso's termination)
 
 
 def simulate(z0, Delta, alpha, params):
@@ -178,4 +179,4 @@ def admm_step(s: Settings, obs: Observation, source, warm) -> StepResult:
         why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
         return fallback(s, obs, source, warm, f"{why} (min b_i {b_min:.2f} m^2)")
     return StepResult(np.array([st.Delta[0], st.alpha[0]]), st, prob.J(st), solve.iters, solve.reason, solve.F_norm,
-                      b_min, solve.zinfo.get("slack", 0.0), "")
+                      b_min, solve.zinfo.get("slack", 0.0), "", solve.zinfo.get("termination_reason", ""))

@@ -42,7 +42,7 @@ TERMINATION = {  # PyGranso's soln.termination_code, in its own words (pygranso.
 class PyGransoSettings(NamedTuple):
     """PyGranso's limits and tolerances per Z-update: iterations, stationarity, violation (m^2 or state units), clock (s)."""
 
-    maxit: int = 30
+    maxit: int = 10
     opt_tol: float = 1e-6
     viol_ineq_tol: float = 1e-6
     mu0: float = 1.0  # initial penalty weight on the objective
@@ -196,7 +196,7 @@ class PyGransoZStep:
         b = self.safety(Z_new)
         violation = float(max(-b.min(initial=np.inf), np.max(self.lo - Z_new), np.max(Z_new - self.hi), 0.0))
         code = int(soln.termination_code)
-        info = {"termination": code, "termination_reason": TERMINATION.get(code, "unknown"),
+        info = {"termination": code, "termination_reason": f"pygranso {code}: {TERMINATION.get(code, 'unknown')}",
                 "pygranso_iters": int(soln.iters), "fn_evals": int(soln.fn_evals), "slack": violation,
                 "infeasible": violation > self.s.infeasible_tol, "b_min": float(b.min(initial=np.inf))}
         return Z_new, (self.carried(soln.H_final), float(soln.final.mu)), info
