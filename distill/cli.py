@@ -8,4 +8,5 @@ from distill.train import run
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="distill")
 def main(cfg: DictConfig) -> None:
+    """Entry point of the `distill` console script."""
     guarded(run)(cfg)

@@ -13,6 +13,7 @@ class WindowData(L.LightningDataModule):
     """Train/val windows from data/<name>/ (metres); with a teacher, relabelled by it and widened with planner-like copies."""
 
     def __init__(self, dataset_dir, batch_size=256, teacher=None, perturbed_copies=1, perturb=None, projections=2, seed=0):
+        """teacher: a predictor with phi_vjp, or None for the data's own next positions; perturb: planner_like's ranges."""
         super().__init__()
         self.dataset_dir, self.batch_size, self.teacher, self.projections = dataset_dir, batch_size, teacher, projections
         self.perturbed_copies, self.perturb, self.seed = perturbed_copies, dict(perturb or {}), seed
@@ -33,9 +34,11 @@ class WindowData(L.LightningDataModule):
                                                  for a in (X, *label(self.teacher, X, rng, self.projections))))
 
     def train_dataloader(self):
+        """Shuffled training batches."""
         return DataLoader(self.splits["train"], batch_size=self.batch_size, shuffle=True)
 
     def val_dataloader(self):
+        """Validation batches, in order."""
         return DataLoader(self.splits["val"], batch_size=4 * self.batch_size)
 
 

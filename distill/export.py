@@ -12,6 +12,7 @@ def export_onnx(module: torch.nn.Module, path: Path, t_obs=8, m=5):
     example = torch.zeros(2, t_obs, m, 2)
 
     def write(tmp):
+        """Export to the temporary path."""
         # the legacy TorchScript exporter: the dynamo one needs onnxscript, which is not a dependency
         torch.onnx.export(module.eval(), (example,), str(tmp), input_names=["window"], output_names=["next"],
                           dynamic_axes={"window": {0: "batch"}, "next": {0: "batch"}}, opset_version=17, dynamo=False)
@@ -23,6 +24,7 @@ class OnnxPredictor:
     """phi(window) by onnxruntime from an exported file; a missing or corrupt file is a UserError naming it."""
 
     def __init__(self, path, name=None):
+        """Open path with one intra-op thread; name defaults to the file's stem."""
         import onnxruntime as ort
 
         path = Path(path)

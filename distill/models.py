@@ -21,6 +21,7 @@ class TorchPredictor:
     """A torch network as a numpy predictor: float32 forward, Jacobians by reverse-mode autodiff (torch.func.jacrev)."""
 
     def __init__(self, name, module):
+        """name for reports; module maps a torch window (B, T_obs, M, 2) to next (B, M, 2), metres."""
         self.name, self.module = name, module.eval()
 
     def phi(self, window):
@@ -47,14 +48,17 @@ class StudentPredictor(TorchPredictor):
     """The GELU student: phi and its exact Jacobian in float64 numpy from the weights (fast at batch 1, as a planner calls it)."""
 
     def __init__(self, module):
+        """module: a GeluStudent; its weights are copied to float64 once."""
         super().__init__("student", module)
         self.weights = module.weights64()
         self.s = module.s.double().numpy()
 
     def phi(self, window):
+        """Next xy (B, M, 2) in metres, float64."""
         return phi_jac64(self.weights, self.s, window, jac=False)
 
     def phi_jac(self, window):
+        """Next xy (B, M, 2) and the exact J (B, M*2, T_obs*M*2), float64."""
         return phi_jac64(self.weights, self.s, window)
 
     def jac_cols(self, window, cols):

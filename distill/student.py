@@ -15,6 +15,7 @@ T_OBS, M = 8, 5
 def feature_map(pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
     """P (78, 80): window flattened (T_obs, M, 2) in metres -> scaled relative positions, velocities, accelerations."""
     def at(t, i, c):
+        """The window-shaped indicator of coordinate c of slot i at time t."""
         e = np.zeros((T_OBS, M, 2))
         e[t, i, c] = 1.0
         return e
@@ -37,6 +38,7 @@ class GeluStudent(nn.Module):
     """GELU MLP on P window with a bounded acceleration head s * tanh (s in metres per step^2, per x and y)."""
 
     def __init__(self, hidden=(64, 64), s_acc=(0.5, 0.25), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+        """Hidden widths, head bound s_acc (m per step^2, x and y), feature scales (m, m/step, m/step^2)."""
         super().__init__()
         P = torch.tensor(feature_map(pos_scale, vel_scale, acc_scale), dtype=torch.float32)
         self.register_buffer("P", P)

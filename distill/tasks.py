@@ -14,16 +14,27 @@ class _Task(L.LightningModule):
     """Shared parts: the network from its config dict, AdamW with a cosine schedule over the run."""
 
     def __init__(self, net: dict, lr=2e-3, weight_decay=1e-5):
+        """net: the network's Hydra config dict; lr, weight_decay for AdamW."""
         super().__init__()
         self.save_hyperparameters(logger=False)  # the job already logs the whole config to MLflow
         self.net = instantiate(net)
 
     def configure_optimizers(self):
+        """AdamW, learning rate cosine-annealed to 0 over max_epochs."""
         opt = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, self.trainer.max_epochs))
         return [opt], [sched]
 
+    def training_step(self, batch, batch_idx):
+        """Training loss of one batch."""
+        return self._step(batch, "train")
+
+    def validation_step(self, batch, batch_idx):
+        """Validation loss of one batch."""
+        self._step(batch, "val")
+
     def _log(self, stage, **values):
+        """Log values as <stage>_<name>; validation values are averaged across DDP processes."""
         for k, v in values.items():
             self.log(f"{stage}_{k}", v, prog_bar=k in ("loss", "ade_m"), sync_dist=stage == "val")
 
@@ -32,20 +43,16 @@ class TeacherTask(_Task):
     """Huber loss of the other cars' next-position error in units of `scale_m` metres (collisions make heavy tails)."""
 
     def __init__(self, net: dict, lr=2e-3, weight_decay=1e-5, scale_m=0.01):
+        """scale_m: the loss unit (m)."""
         super().__init__(net, lr, weight_decay)
 
     def _step(self, batch, stage):
+        """Loss on (window, next) and the logged ADE of the other cars (m)."""
         X, Y = batch
         err = (self.net(X) - Y)[:, 1:]
         loss = torch.nn.functional.huber_loss(err / self.hparams.scale_m, torch.zeros_like(err))
         self._log(stage, loss=loss, ade_m=err.norm(dim=-1).mean())
         return loss
-
-    def training_step(self, batch, batch_idx):
-        return self._step(batch, "train")
-
-    def validation_step(self, batch, batch_idx):
-        self._step(batch, "val")
 
 
 class StudentTask(_Task):
@@ -54,6 +61,7 @@ class StudentTask(_Task):
 
     def __init__(self, net: dict, lr=3e-3, weight_decay=0.0, scale_m=0.01, jac_weight=1.0, ego_jac_weight=1.0,
                  spectral_weight=0.0):
+        """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty."""
         super().__init__(net, lr, weight_decay)
         # d others / d ego is small beside the others' own dynamics, yet it is the interaction the planner uses
         columns = torch.ones(T_OBS, M, 2)
@@ -67,6 +75,7 @@ class StudentTask(_Task):
         return torch.stack(norms).log().sum()
 
     def _step(self, batch, stage):
+        """Loss on (window, teacher next, cotangents v, teacher v^T J) and its logged parts."""
         X, y_t, v, vJ_t = batch
         X = X.requires_grad_()
         y_s = self.net(X)
@@ -81,9 +90,7 @@ class StudentTask(_Task):
         self._log(stage, loss=loss, out_loss=out_loss, jac_loss=jac_loss, ade_m=err.norm(dim=-1).mean())
         return loss
 
-    def training_step(self, batch, batch_idx):
-        return self._step(batch, "train")
-
     def validation_step(self, batch, batch_idx):
-        with torch.enable_grad():  # the Jacobian term needs autograd even in validation
+        """Validation loss; the Jacobian term needs autograd even here."""
+        with torch.enable_grad():
             self._step(batch, "val")

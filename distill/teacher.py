@@ -21,12 +21,14 @@ class GRU(nn.Module):
     """A plain GRU over time (B, T, d_in) -> last hidden state (B, hidden), written out so torch.func can batch it."""
 
     def __init__(self, d_in, hidden):
+        """d_in input features, hidden state size."""
         super().__init__()
         self.hidden = hidden
         self.x_gates = nn.Linear(d_in, 3 * hidden)
         self.h_gates = nn.Linear(hidden, 3 * hidden)
 
     def forward(self, x):
+        """Last hidden state (B, hidden) after reading x (B, T, d_in) from h = 0."""
         h = x.new_zeros(x.shape[0], self.hidden)
         for t in range(x.shape[1]):
             xr, xz, xn = self.x_gates(x[:, t]).chunk(3, dim=-1)
@@ -40,6 +42,7 @@ class SocialTeacher(nn.Module):
     """Social GAN's generator made deterministic: encoder GRU, pairwise Pool Net, MLP decoder (scales in m, m/step)."""
 
     def __init__(self, hidden=64, pool=128, decoder=(256, 256), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+        """Widths of the GRU state, the Pool Net and the decoder; feature scales in m, m/step, m/step^2."""
         super().__init__()
         self.pos_scale, self.vel_scale, self.acc_scale = pos_scale, vel_scale, acc_scale
         self.encoder = GRU(6, hidden)
