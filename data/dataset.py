@@ -120,7 +120,7 @@ def read_meta(root: Path) -> dict:
     """The dataset's meta.json, validated; a missing or corrupt one is a UserError naming the file."""
     path = Path(root) / "meta.json"
     if not path.exists():
-        raise UserError(f"dataset not found: {path} is missing (build it with `make-dataset dataset.name={Path(root).name}`)")
+        raise UserError(f"dataset not found: {path} is missing (build it with `make-dataset dataset={Path(root).name}`)")
     try:
         meta = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
