@@ -186,11 +186,13 @@ class PyGransoZStep:
         Z0 = np.clip(Z, self.lo, self.hi)
         printed = io.StringIO()
         try:
-            with contextlib.redirect_stdout(printed):  # OSQP 1.x prints a line per polish, PyGranso its tracebacks
+            with contextlib.redirect_stdout(printed), warnings.catch_warnings():  # OSQP 1.x prints per polish,
+                warnings.simplefilter("ignore", PendingDeprecationWarning)  # and warns per solve() PyGranso makes
                 soln = self.pygranso(var_spec={"Z": [len(Z0)]}, combined_fn=combined,
                                      user_opts=self.options(Z0, zstate))
         except SystemExit:  # PyGranso exits when the functions fail at x0 (e.g. non-finite values)
-            raise SolverFailure(f"PyGranso could not start: {printed.getvalue().strip().splitlines()[-1:]}") from None
+            lines = [ln for ln in printed.getvalue().splitlines() if ln.strip() and not ln.startswith(" ")]
+            raise SolverFailure(f"PyGranso stopped the process: {' / '.join(lines[-2:])}") from None
         point = getattr(soln, "best", None) or soln.most_feasible  # best feasible to tolerance, else least violating
         Z_new = point.x.detach().reshape(-1).numpy().astype(float)
         b = self.safety(Z_new)

@@ -5,7 +5,7 @@ import numpy as np
 def b_i(values, R):
     """d_i (N, T_p) in m^2: squared centre distance ego-to-car minus R^2, R = r + r_i + eps (m); values (T_p, M, 2)."""
     gap = values[:, :1] - values[:, 1:]
-    return np.sum(gap**2, axis=-1).T - R**2
+    return (gap**2).sum(-1).T - R**2  # numpy or torch alike: PyGranso back-propagates through it
 
 
 def b_i_jacobian(values, grads, R):

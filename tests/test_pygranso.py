@@ -1,0 +1,85 @@
+"""zstep=pygranso, the paper's Z-update by PyGranso: same local solution as our SQP Z-step on a small instance, its
+termination reason in the step info and the per-step log, and one clear error when the `pygranso` extra is missing."""
+import dataclasses
+import sys
+
+import numpy as np
+import pytest
+from hydra.utils import instantiate
+
+from conftest import compose_cfg
+from data.jobs import UserError
+from planner import admm, cli, closed_loop, mpc
+from planner.closed_loop import backfill
+from planner.gradients import make_source
+from planner.pygranso_zstep import PyGransoZStep, import_pygranso, linear_term
+from planner.zstep import SQPZStep
+
+
+@pytest.fixture(scope="module")
+def small():
+    """T_p = 2 on two_lane, the ego nudged towards the platoon: settings, observation, analytic predictor config."""
+    cfg = compose_cfg("planner", ["scenario=two_lane"])
+    scenario = instantiate(cfg.scenario, _convert_="all")
+    s = dataclasses.replace(cli.settings(cfg, scenario), T_p=2)
+    z = scenario.make_world(0).z
+    z[0, 1], z[0, 2] = 1.6, 0.15
+    return s, mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), dict(cfg.analytic), scenario
+
+
+def z_problem(s, obs, source):
+    """A Z-update after three ADMM sweeps: the Problem and (Z_k, mu, c_Z)."""
+    prob, st = mpc.build(s, obs, source, None)
+    for _ in range(3):
+        st, _ = admm.admm_step(prob, st)
+    st = st._replace(Delta=admm.delta_update(prob, st))
+    st = st._replace(alpha=admm.alpha_update(prob, st))
+    return prob, (st.Z, st.mu, prob.dyn.C @ st.Z - prob.dyn.F(st.Delta, st.alpha, st.Z))
+
+
+@pytest.mark.parametrize("gradients,predictor", [("analytic", "auto"), ("teacher", "analytic")])
+def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
+    pytest.importorskip("pygranso")
+    s, obs, analytic, _ = small
+    prob, (Z, mu, c_Z) = z_problem(s, obs, make_source(gradients, predictor, analytic=analytic))
+    lo, hi = mpc.state_box(s)
+    safety = prob.zstep.safety
+    sqp = SQPZStep(prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.sqp._replace(max_iters=100, tol=1e-9),
+                   {**s.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
+    pg = PyGransoZStep(prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.pygranso._replace(maxit=100, opt_tol=1e-7))
+    Z_sqp, _, _ = sqp(Z, mu, c_Z)
+    Z_pg, _, info = pg(Z, mu, c_Z)
+    f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.rho, mu, c_Z))  # noqa: E731
+    b = safety(Z_pg)
+    assert b.min() > -1e-6 and np.sum(np.abs(b) < 1e-4) >= 1  # feasible, a safety constraint active: not a trivial QP
+    assert f(Z_pg) < f(Z) - 1e-2  # both moved well away from the start
+    assert abs(f(Z_pg) - f(Z_sqp)) <= 1e-6 * abs(f(Z_sqp)) and np.abs(Z_pg - Z_sqp).max() < 1e-4
+    assert info["termination"] in (0, 6) and not info["infeasible"]
+
+
+def test_termination_reason_in_step_info_and_per_step_log(small):
+    pytest.importorskip("pygranso")
+    s, obs, analytic, scenario = small
+    s = dataclasses.replace(s, zstep="pygranso", admm={"max_iters": 2, "tol_F": 1e-3, "tol_step": 1e-3},
+                            pygranso=s.pygranso._replace(maxit=3))
+    source = make_source("analytic", analytic=analytic)
+    prob, (Z, mu, c_Z) = z_problem(s, obs, source)
+    _, _, info = prob.zstep(Z, mu, c_Z, None)
+    assert info["termination"] == 4 and info["termination_reason"] == "pygranso 4: max iterations (maxit)"
+    step = lambda o, warm: mpc.admm_step(s, o, source, warm)  # noqa: E731
+    ep = closed_loop.drive(scenario.make_world(0), step, source, scenario.x_ref, scenario.target_lane, max_steps=1)
+    assert ep.rows[0]["zstep_stop"].startswith("pygranso ") and not ep.rows[0]["fallback"]
+
+
+def test_missing_pygranso_is_one_clear_error(small, monkeypatch, tmp_path, capsys):
+    for name in [m for m in sys.modules if m == "pygranso" or m.startswith("pygranso.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "pygranso", None)  # what an environment without the extra looks like to import
+    with pytest.raises(UserError, match=r"pip install -e '\.\[pygranso\]'"):
+        import_pygranso()
+    cfg = compose_cfg("planner", ["scenario=two_lane", "zstep=pygranso", "gradients=cv", "max_steps=1", "plots=false",
+                                  f"out_dir={tmp_path}"])
+    with pytest.raises(SystemExit):
+        cli.run(cfg)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: zstep=pygranso needs PyGranso, which is not installed; run pip install -e '.[pygranso]'"]
