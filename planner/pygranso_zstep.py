@@ -7,7 +7,7 @@ source b_i(Z) is a custom autograd function whose backward is that source's d b_
 `zstep=pygranso` selects it; `pip install -e '.[pygranso]'` installs it.
 """
 import contextlib
-import importlib.util
+import importlib
 import io
 import sys
 import types
@@ -54,16 +54,15 @@ class PyGransoSettings(NamedTuple):
 
 @contextlib.contextmanager
 def _pygranso_1_2_compat():
-    """What pygranso 1.2.0 needs at import only: a `gurobipy` name (used for QPsolver='gurobi' alone) and numpy's `Inf`.
-
-    Both are put in place for the import and taken away after it, so nothing else in the process sees them.
+    """What pygranso 1.2.0 needs at import only: `gurobipy` (used for QPsolver='gurobi' alone), tkinter's messagebox
+    (an unused import) and numpy's `Inf` (gone in numpy 2). Stand-ins for the missing ones live only for the import.
     """
     import numpy._core.numeric as numeric
 
-    stub_gurobi = importlib.util.find_spec("gurobipy") is None
-    stub_inf = not hasattr(numeric, "Inf")  # numpy 2 removed it; pygransoOptions imports it from numpy.core.numeric
-    if stub_gurobi:
-        sys.modules["gurobipy"] = types.SimpleNamespace(GRB=None)
+    stubs = {"gurobipy": types.SimpleNamespace(GRB=None), "tkinter.messagebox": types.SimpleNamespace(NO="no")}
+    stubs = {name: stub for name, stub in stubs.items() if not _importable(name)}
+    stub_inf = not hasattr(numeric, "Inf")  # pygransoOptions imports it from numpy.core.numeric
+    sys.modules.update(stubs)
     if stub_inf:
         numeric.Inf = np.inf
     try:
@@ -71,10 +70,19 @@ def _pygranso_1_2_compat():
             warnings.simplefilter("ignore", DeprecationWarning)  # numpy.core.* paths in pygranso
             yield
     finally:
-        if stub_gurobi:
-            sys.modules.pop("gurobipy", None)
+        for name in stubs:
+            sys.modules.pop(name, None)
         if stub_inf:
             del numeric.Inf
+
+
+def _importable(name):
+    """Whether `import name` works here (tkinter is present on many Pythons without the Tk library it loads)."""
+    try:
+        importlib.import_module(name)
+        return True
+    except ImportError:
+        return False
 
 
 def import_pygranso():
