@@ -10,7 +10,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import mlflow  # noqa: E402
 import numpy as np  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
 from joblib import Parallel, delayed  # noqa: E402
@@ -101,35 +100,41 @@ def histograms(rows, step_ms, out_dir, tag, title):
     return paths
 
 
-def run(cfg, scenario_name: str, source, methods, out_dir) -> dict:
-    """Drive cfg.episodes episodes per method over cfg.n_jobs processes, write and log; returns {method: metrics}."""
+def drive_all(cfg, method: str) -> list:
+    """[episode(...)] for seeds cfg.seed .. cfg.seed + cfg.episodes - 1, over cfg.n_jobs joblib processes."""
     cfg_dict = OmegaConf.to_container(cfg, resolve=True)
     seeds = range(cfg.seed, cfg.seed + cfg.episodes)
-    results = {}
-    for method in methods:
-        out = Parallel(n_jobs=cfg.n_jobs)(delayed(episode)(cfg_dict, method, seed) for seed in seeds)
-        rows = [o[0] for o in out]
-        step_ms = [t for o in out for t in o[1]]
-        iters = [k for o in out for k in o[2]]
-        results[method] = aggregate(rows, step_ms, iters)
-        tag = f"{method}_{source.name}_{scenario_name}"
-        title = f"{scenario_name}, {method}, gradients={source.name}: {cfg.episodes} episodes"
-        csv_path = out_dir / f"episodes_{tag}.csv"
-        write_csv(rows, csv_path)
-        plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
-        with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario_name}", gradients=source.name,
-                        method=method, zstep=cfg.zstep, scenario=scenario_name, seed=cfg.seed,
-                        predictor=source.predictor.name, episodes=cfg.episodes):
-            mlflow.log_metrics(results[method])
-            mlflow.log_artifact(str(csv_path))
-            for p in plots:
-                mlflow.log_artifact(str(p), "plots")
-        errors = sorted({r["error"] for r in rows if r["crash"]})
-        for e in errors:
-            print(f"[{method}] crash: {e}")
-        r = results[method]
-        print(f"[{method}] {title}: merged {r['merged']:.1%}, collision {r['collision']:.1%}, t_merge {r['t_merge']:.1f} "
-              f"steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / {r['step_ms_p95']:.1f} p95, "
-              f"{r['fallbacks']:.2f} fallbacks per episode, {r['crashes']:.0f} crashes, {r['nans']:.0f} NaN episodes; "
-              f"outputs in {out_dir}")
-    return results
+    return Parallel(n_jobs=cfg.n_jobs)(delayed(episode)(cfg_dict, method, seed) for seed in seeds)
+
+
+def record(cfg, scenario_name: str, source, method: str, out: list, out_dir) -> dict:
+    """Aggregate drive_all's output, write the CSV and histograms to out_dir, log one MLflow run; returns its metrics."""
+    import mlflow
+
+    rows = [o[0] for o in out]
+    step_ms = [t for o in out for t in o[1]]
+    r = aggregate(rows, step_ms, [k for o in out for k in o[2]])
+    tag = f"{method}_{source.name}_{scenario_name}"
+    title = f"{scenario_name}, {method}, gradients={source.name}: {len(rows)} episodes"
+    csv_path = out_dir / f"episodes_{tag}.csv"
+    write_csv(rows, csv_path)
+    plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
+    with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario_name}", gradients=source.name,
+                    method=method, zstep=cfg.zstep, scenario=scenario_name, seed=cfg.seed,
+                    predictor=source.predictor.name, episodes=len(rows)):
+        mlflow.log_metrics(r)
+        mlflow.log_artifact(str(csv_path))
+        for p in plots:
+            mlflow.log_artifact(str(p), "plots")
+    for e in sorted({row["error"] for row in rows if row["crash"]}):
+        print(f"[{method}] crash: {e}")
+    print(f"[{method}] {title}: merged {r['merged']:.1%}, collision {r['collision']:.1%}, t_merge {r['t_merge']:.1f} "
+          f"steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / {r['step_ms_p95']:.1f} p95, "
+          f"{r['fallbacks']:.2f} fallbacks per episode, {r['crashes']:.0f} crashes, {r['nans']:.0f} NaN episodes; "
+          f"outputs in {out_dir}")
+    return r
+
+
+def run(cfg, scenario_name: str, source, methods, out_dir) -> dict:
+    """Drive cfg.episodes episodes per method, write and log each method's batch; returns {method: metrics}."""
+    return {m: record(cfg, scenario_name, source, m, drive_all(cfg, m), out_dir) for m in methods}

@@ -1,0 +1,68 @@
+"""Bad inputs give one clear error or a reported fallback, never a traceback or lost data. Covered elsewhere:
+missing dataset/model naming the command (test_dataset, test_distill_jobs, test_surrogate, test_planner), corrupt
+.npz (test_dataset), .ckpt/.onnx (test_distill_jobs, test_surrogate), wrong-shape ONNX (test_surrogate), NaN history
+(test_planner), start in collision (test_planner_loop), unknown scenario/gradients (test_planner, test_planner_loop,
+test_dataset), resume from a checkpoint (test_distill_jobs)."""
+import mlflow
+import numpy as np
+import pytest
+from hydra.utils import instantiate
+
+from conftest import compose_cfg
+from data.jobs import UserError, mlflow_run
+from planner import cli, mpc, nnmpc
+from planner.closed_loop import backfill
+from planner.gradients import make_source
+
+
+@pytest.fixture(scope="module")
+def setup():
+    """two_lane settings, an observation of its start and a warm plan from one solved step (analytic predictor)."""
+    cfg = compose_cfg("planner", ["scenario=two_lane"])
+    scenario = instantiate(cfg.scenario, _convert_="all")
+    s, source = cli.settings(cfg, scenario), make_source("analytic")
+    z = scenario.make_world(0).z
+    obs = mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2))
+    return s, source, obs, mpc.admm_step(s, obs, source, None).plan
+
+
+@pytest.mark.parametrize("field", ["z0", "u_prev", "history"])
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
+def test_non_finite_observation_is_a_reported_fallback(setup, field, bad):
+    s, source, obs, warm = setup
+    broken = getattr(obs, field).copy()
+    broken.flat[1] = bad
+    obs = obs._replace(**{field: broken})
+    steps = [lambda w: mpc.admm_step(s, obs, source, w)]
+    if field != "u_prev":  # NNMPC never reads the last input
+        steps.append(lambda w: nnmpc.nnmpc_step(s, obs, source, w))
+    for step in steps:
+        for w in (warm, None):
+            result = step(w)
+            assert "non-finite observation" in result.fallback
+            assert np.all(np.isfinite(result.u)) and result.reason == "fallback"
+
+
+def test_unwritable_output_folder_is_one_line_and_writes_nothing(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    before = len(mlflow.search_runs(experiment_names=["planner"]))
+    capsys.readouterr()  # MLflow's own set-up lines, if the store is new
+    cfg = compose_cfg("planner", ["scenario=two_lane", "gradients=cv", f"out_dir={blocker}/out", "max_steps=2"])
+    with pytest.raises(SystemExit) as e:
+        cli.run(cfg)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: cannot write to the output folder") and "a_file" in err[0]
+    assert [p.name for p in tmp_path.iterdir()] == ["a_file"]
+    assert len(mlflow.search_runs(experiment_names=["planner"])) == before  # no run was started
+
+
+def test_failing_run_is_marked_failed_with_the_error():
+    cfg = compose_cfg("planner", ["scenario=two_lane"])
+    with pytest.raises(UserError):
+        with mlflow_run("hardening", cfg, run_name="boom") as run:
+            raise UserError("the planner found nothing to plan")
+    got = mlflow.get_run(run.info.run_id)
+    assert got.info.status == "FAILED"
+    assert got.data.tags["error"] == "UserError: the planner found nothing to plan"
