@@ -1,7 +1,7 @@
 """Accuracy where the planner uses it, and speed: composed d b_i / d Z on held-out planning states, microseconds per call.
 
-Every Jacobian source is composed with the same rollout values (the source predictor's phi), so the figures measure
-the gradient alone. The direct term of d b_i / d Z (the ego's own xy) is exact for every source; the `react_*`
+Every Jacobian source is composed with the same rollout values (the source predictor's phi, computed once, batched,
+for all states), so the figures measure the gradient alone. The direct term of d b_i / d Z (the ego's own xy) is exact for every source; the `react_*`
 figures isolate what the predictor contributes, d p_i / d Z of the other cars.
 """
 import time
@@ -11,11 +11,24 @@ import numpy as np
 from distill.rollout import rollout_jacobian
 
 
-def dZ(phi, jac, history, ego_future, R):
-    """d b_i / d Z (N*T_p, 4*T_p) m^2/m and d p_i / d ego xy (T_p, N, 2, T_p, 2), values from phi, local Jacobians from jac."""
+def replay(windows, nexts, Js):
+    """A phi_jac for rollout_jacobian that hands back batched results (T_p, ...) step by step, checking each window."""
+    steps = iter(zip(windows, nexts, Js))
+
+    def phi_jac(window):
+        w, nxt, J = next(steps)
+        if not np.allclose(window[0], w, atol=1e-3):
+            raise RuntimeError("rollout visited a window other than the precomputed one")
+        return nxt[None], J[None]
+
+    return phi_jac
+
+
+def dZ(phi_jac, history, ego_future, R):
+    """d b_i / d Z (N*T_p, 4*T_p) m^2/m and d p_i / d ego xy (T_p, N, 2, T_p, 2) of one planning state."""
     from planner.safety import b_i_jacobian  # the planner's eq. (8) derivative, reused so both measure the same thing
 
-    values, grads = rollout_jacobian(lambda w: (phi(w), jac(w)), history, ego_future)
+    values, grads = rollout_jacobian(phi_jac, history, ego_future)
     return b_i_jacobian(values, grads, R)[1], grads[:, 1:]
 
 
@@ -29,14 +42,17 @@ def relative(a, b):
     return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300))
 
 
-def gradient_accuracy(source, jacs: dict, histories, ego_futures, R):
-    """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err, means over the states."""
-    scores = {name: {"grad_cosine": [], "grad_rel_err": [], "react_cosine": [], "react_rel_err": []} for name in jacs}
-    exact = lambda w: source.phi_jac(w)[1]  # noqa: E731  (the source's own exact local Jacobian)
-    for history, ego_future in zip(histories, ego_futures):
-        G, react = dZ(source.phi, exact, history, ego_future, R)
-        for name, jac in jacs.items():
-            G_hat, react_hat = dZ(source.phi, jac, history, ego_future, R)
+def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R):
+    """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err, means over the states.
+
+    windows (n, T_p, T_obs, M, 2), nexts (n, T_p, M, 2) and the exact J (n, T_p, M*2, T_obs*M*2) are the source's on the
+    windows its rollout visits; each of J_hats {name: (n, T_p, M*2, T_obs*M*2)} replaces J in the same rollout.
+    """
+    scores = {name: {"grad_cosine": [], "grad_rel_err": [], "react_cosine": [], "react_rel_err": []} for name in J_hats}
+    for i, (history, ego_future) in enumerate(zip(histories, ego_futures)):
+        G, react = dZ(replay(windows[i], nexts[i], J[i]), history, ego_future, R)
+        for name, J_hat in J_hats.items():
+            G_hat, react_hat = dZ(replay(windows[i], nexts[i], J_hat[i]), history, ego_future, R)
             s = scores[name]
             s["grad_cosine"].append(cosine(G_hat, G))
             s["grad_rel_err"].append(relative(G_hat, G))
@@ -45,12 +61,11 @@ def gradient_accuracy(source, jacs: dict, histories, ego_futures, R):
     return {name: {k: float(np.mean(v)) for k, v in s.items()} for name, s in scores.items()}
 
 
-def time_us(fn, arg, repeats=200):
-    """Median wall time of fn(arg) in microseconds, after a warm-up."""
-    for _ in range(10):
-        fn(arg)
+def time_us(fn, arg, repeats=200, budget_s=3.0):
+    """Median wall time of fn(arg) in microseconds, after a warm-up; stops early once budget_s seconds are spent."""
+    fn(arg)
     times = []
-    for _ in range(repeats):
+    while len(times) < repeats and sum(times) < budget_s:
         t0 = time.perf_counter()
         fn(arg)
         times.append(time.perf_counter() - t0)

@@ -25,9 +25,11 @@ class JacobianData(L.LightningDataModule):
         self.batch_size = batch_size
 
     def train_dataloader(self):
+        """Shuffled training batches (window, J)."""
         return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True)
 
     def val_dataloader(self):
+        """Validation in large batches (window, J)."""
         return DataLoader(self.val_set, batch_size=4096)
 
 
@@ -44,16 +46,19 @@ class SurrogateModule(L.LightningModule):
         return torch.nn.functional.mse_loss(self.net.standardised(window), target)
 
     def training_step(self, batch, _):
+        """Standardised MSE of one batch."""
         loss = self.loss(*batch)
         self.log("train_loss", loss, prog_bar=True)
         return loss
 
     def validation_step(self, batch, _):
+        """Standardised MSE and relative Frobenius error of the Jacobian."""
         window, J = batch
         self.log("val_loss", self.loss(window, J), prog_bar=True)
         self.log("val_jac_rel_err", rel_err(self.net(window), J))
 
     def configure_optimizers(self):
+        """AdamW with a one-cycle learning rate over the whole run."""
         opt = torch.optim.AdamW(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
         steps = self.trainer.estimated_stepping_batches
         return {"optimizer": opt, "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.OneCycleLR(opt, self.lr, total_steps=steps), "interval": "step"}}

@@ -92,7 +92,7 @@ def job_cfg(tmp_path, tiny_dataset, *overrides):
         f"dataset_dir={tiny_dataset}", f"models_dir={tmp_path}",
         f"out_dir={tmp_path}", "predictor._target_=test_surrogate.stand_in", "source=student",
         "data.dataset_windows=1500", "data.plan_states=300", "data.val_dataset_windows=200",
-        "data.val_plan_states=30", "data.test_plan_states=30", "data.grad_states=30", "network.hidden=128",
+        "data.val_plan_states=30", "data.test_plan_states=30", "network.hidden=128",
         "trainer.max_epochs=15", "timing.repeats=20", "timing.predictors=[]", *overrides])
 
 
