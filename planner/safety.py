@@ -35,6 +35,11 @@ class Safety:
         """b_i(Z) flattened (N*T_p,), m^2, from the predictor's values only."""
         return b_i(self.source.values(self.history, self.ego_xy(Z)[None])[0], self.R).reshape(-1)
 
+    def trial(self, Z):
+        """b_i(Z) at a trial step: for a source whose values come with the Jacobian at little extra cost (`joint`), from
+        the linearisation at Z, cached, since an accepted step is linearised next; else as __call__."""
+        return self.linearize(Z)[0] if getattr(self.source, "joint", False) else self(Z)
+
     def linearize(self, Z):
         """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) from the gradient source."""
         key = np.asarray(Z, dtype=float).tobytes()

@@ -89,7 +89,7 @@ class SQPZStep:
             x = self.qp.solve(q=q, l=l, u=u, Gx=data)
             Z_new, s = x[:self.n_Z], x[self.n_Z:]
             slack = float(max(s.max(initial=0.0), 0.0))
-            b_new = self.safety(Z_new)
+            b_new = self.safety.trial(Z_new)
             here = self.merit(Z, lin_q, b)
             predicted = here - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
             actual = here - self.merit(Z_new, lin_q, b_new)
