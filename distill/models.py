@@ -18,21 +18,22 @@ NAMES = ("teacher", "student", "cv")
 
 
 class TorchPredictor:
-    """A torch network as a numpy predictor: float32 forward, Jacobians by reverse-mode autodiff (torch.func.jacrev)."""
+    """A torch network as a numpy predictor: forward in the network's dtype, Jacobians by reverse-mode autodiff."""
 
     def __init__(self, name, module):
         """name for reports; module maps a torch window (B, T_obs, M, 2) to next (B, M, 2), metres."""
         self.name, self.module = name, module.eval()
+        self.dtype = next(module.parameters()).dtype
 
     def phi(self, window):
         """Next xy (B, M, 2) in metres, float64."""
         with torch.no_grad():
-            return self.module(torch.as_tensor(np.asarray(window), dtype=torch.float32)).double().numpy()
+            return self.module(torch.as_tensor(np.asarray(window), dtype=self.dtype)).double().numpy()
 
     def phi_vjp(self, window, cotangents):
         """Next xy (B, M, 2) and v^T J (B, k, T_obs*M*2) for cotangents v (B, k, M, 2), by torch.func.vjp."""
-        w = torch.as_tensor(np.asarray(window), dtype=torch.float32)
-        v = torch.as_tensor(np.asarray(cotangents), dtype=torch.float32)
+        w = torch.as_tensor(np.asarray(window), dtype=self.dtype)
+        v = torch.as_tensor(np.asarray(cotangents), dtype=self.dtype)
         with torch.no_grad():
             nxt, pullback = vjp(self.module, w)
             vJ = torch.stack([pullback(v[:, k])[0].reshape(len(w), -1) for k in range(v.shape[1])], dim=1)

@@ -31,3 +31,23 @@ def tiny_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("data")
     run(compose_cfg("make_dataset", ["dataset=tiny", f"out_dir={out}", "plot_episodes=0"]))
     return out / "tiny"
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tiny_dataset, tmp_path_factory):
+    """A models folder with a tiny teacher and student trained on the tiny dataset, and both jobs' metrics."""
+    from distill.train import run
+
+    models_dir = tmp_path_factory.mktemp("models")
+    runs = tmp_path_factory.mktemp("runs")
+
+    def job(name, *overrides):
+        return run(compose_cfg("distill", [f"dataset_dir={tiny_dataset}", f"models_dir={models_dir}", f"run_dir={runs / name}",
+                                           "trainer.enable_progress_bar=false", f"model={name}", *overrides]))
+
+    teacher = job("teacher", f"trainer.max_epochs={TINY_TEACHER_EPOCHS}")
+    student = job("student", "trainer.max_epochs=2", "model.certificate.samples=1500")
+    return models_dir, teacher, student, runs
+
+
+TINY_TEACHER_EPOCHS = 4

@@ -12,9 +12,8 @@ from data.jobs import UserError
 from distill import models
 from distill.export import load_onnx
 from distill.train import run
-from tests.conftest import compose_cfg
+from conftest import TINY_TEACHER_EPOCHS, compose_cfg
 
-TEACHER_EPOCHS = 4
 
 
 def job(tiny_dataset, models_dir, run_dir, *overrides):
@@ -24,14 +23,9 @@ def job(tiny_dataset, models_dir, run_dir, *overrides):
 
 
 @pytest.fixture(scope="module")
-def trained(tiny_dataset, tmp_path_factory):
-    """models_dir holding a tiny teacher and student, with both jobs' metrics."""
-    models_dir = tmp_path_factory.mktemp("models")
-    runs = tmp_path_factory.mktemp("runs")
-    teacher = job(tiny_dataset, models_dir, runs / "teacher", "model=teacher", f"trainer.max_epochs={TEACHER_EPOCHS}")
-    student = job(tiny_dataset, models_dir, runs / "student", "model=student", "trainer.max_epochs=2",
-                  "model.certificate.samples=1500")
-    return models_dir, teacher, student, runs
+def trained(tiny_models):
+    """models_dir holding a tiny teacher and student, with both jobs' metrics (the session's tiny models)."""
+    return tiny_models
 
 
 def test_tiny_teacher_beats_constant_velocity(trained):
@@ -69,7 +63,7 @@ def test_onnx_matches_torch(trained, tiny_dataset, name):
 def test_resume_continues_from_checkpoint(trained, tiny_dataset, tmp_path):
     ckpt = trained[0] / "teacher.ckpt"
     saved_epoch = torch.load(ckpt, map_location="cpu", weights_only=True)["epoch"]
-    job(tiny_dataset, tmp_path, tmp_path / "run", "model=teacher", f"trainer.max_epochs={TEACHER_EPOCHS + 2}",
+    job(tiny_dataset, tmp_path, tmp_path / "run", "model=teacher", f"trainer.max_epochs={TINY_TEACHER_EPOCHS + 2}",
         f"ckpt_path={ckpt}")
     last = mlflow.search_runs(experiment_names=["distill"], order_by=["attributes.start_time DESC"], max_results=1)
     epochs = [m.value for m in mlflow.MlflowClient().get_metric_history(last.run_id.iloc[0], "epoch")]
