@@ -10,11 +10,12 @@ import numpy as np
 
 from data import bicycle
 from data.world import Road, steer_to
+from distill.rollout import b_i
 from planner import admm, cost, dynamics
 from planner.pygranso_zstep import PyGransoSettings
 from planner.zstep import ZSTEPS, SQPSettings
 from planner.qp import SolverFailure
-from planner.safety import Safety, b_i
+from planner.safety import Safety
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import numpy as np
 from data import bicycle
 from planner import admm
 from planner.mpc import Observation, Settings, StepResult, costs, fallback
-from planner.safety import b_i
+from distill.rollout import b_i
 
 
 def lateral_path(x, x0, y0, y1, L):

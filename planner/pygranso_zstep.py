@@ -20,7 +20,7 @@ from data.jobs import UserError
 from distill.rollout import rollout
 from planner.gradients import Autodiff
 from planner.qp import SolverFailure
-from planner.safety import b_i
+from distill.rollout import b_i
 
 TERMINATION = {  # PyGranso's soln.termination_code, in its own words (pygranso.pygranso docstring)
     0: "converged: stationarity <= opt_tol, feasible to tolerance",

@@ -1,23 +1,7 @@
-"""Eq. (6)-(8): single-circle safety b_i(Z) >= 0 against the predicted others, and its Jacobian d b_i / d Z."""
+"""Eq. (6)-(8) for one MPC step: b_i(Z) >= 0 against the gradient source's predictions, linearised with its Jacobian."""
 import numpy as np
 
-
-def b_i(values, R):
-    """d_i (N, T_p) in m^2: squared centre distance ego-to-car minus R^2, R = r + r_i + eps (m); values (T_p, M, 2)."""
-    gap = values[:, :1] - values[:, 1:]
-    return (gap**2).sum(-1).T - R**2  # numpy or torch alike: PyGranso back-propagates through it
-
-
-def b_i_jacobian(values, grads, R):
-    """b_i (N*T_p,) and d b_i / d Z (N*T_p, 4T_p), from rollout values (T_p, M, 2) and d values / d ego xy (T_p, M, 2, T_p, 2)."""
-    T_p = len(values)
-    gap = values[:, :1] - values[:, 1:]  # (T_p, N, 2)
-    dgap = grads[:, :1] - grads[:, 1:]  # (T_p, N, 2, T_p, 2)
-    db = 2.0 * np.einsum("tnk,tnkse->ntse", gap, dgap)  # (N, T_p, T_p, 2): d b_i(t) / d ego xy(s)
-    n = db.shape[0]
-    dZ = np.zeros((n, T_p, T_p, 4))
-    dZ[..., :2] = db  # b depends on Z only through the ego's x, y
-    return b_i(values, R).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
+from distill.rollout import b_i, b_i_jacobian
 
 
 class Safety:

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from distill.rollout import rollout_jacobian
+from distill.rollout import b_i_jacobian, rollout_jacobian
 
 
 def replay(windows, nexts, Js):
@@ -26,8 +26,6 @@ def replay(windows, nexts, Js):
 
 def dZ(phi_jac, history, ego_future, R):
     """d b_i / d Z (N*T_p, 4*T_p) m^2/m and d p_i / d ego xy (T_p, N, 2, T_p, 2) of one planning state."""
-    from planner.safety import b_i_jacobian  # the planner's eq. (8) derivative, reused so both measure the same thing
-
     values, grads = rollout_jacobian(phi_jac, history, ego_future)
     return b_i_jacobian(values, grads, R)[1], grads[:, 1:]
 
