@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench bench-zstep batch clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -12,14 +12,32 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+# The whole pipeline at demo size (about 6 minutes on 2 cores): data, teacher, certified student, gradient
+# surrogate, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, then the accuracy-vs-speed table.
 demo: $(STAMP)
 	$(BIN)/make-dataset
+	$(BIN)/distill model=teacher
+	$(BIN)/distill model=student
+	$(BIN)/surrogate
+	$(BIN)/planner --gradients=surrogate method=both scenario=two_lane
+	$(BIN)/planner --gradients=surrogate method=both scenario=three_lane
+	$(BIN)/planner --gradients=student method=both scenario=two_lane
+	$(BIN)/compare
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
 
+# One MPC step per gradient source on saved planning states, single-threaded, with the ratios (needs `make demo` models).
 bench: $(STAMP)
 	$(BIN)/python -m bench.step_time
+
+# Our SQP Z-step against the paper's PyGranso BFGS-SQP on the same states (slow: minutes per state).
+bench-zstep: $(STAMP)
+	$(BIN)/python -m bench.zstep_compare
+
+# 1000 seeded random merges in parallel (joblib), one MLflow run per method; long on 2 cores.
+batch: $(STAMP)
+	$(BIN)/planner scenario=random episodes=1000 gradients=analytic method=both
 
 clean:
 	rm -rf outputs multirun mlflow.db mlruns models data/small data/large
