@@ -28,12 +28,12 @@ class TorchPredictor:
     def phi(self, window):
         """Next xy (B, M, 2) in metres, float64."""
         with torch.no_grad():
-            return self.module(torch.as_tensor(np.asarray(window), dtype=self.dtype)).double().numpy()
+            return self.module(torch.tensor(np.asarray(window), dtype=self.dtype)).double().numpy()
 
     def phi_vjp(self, window, cotangents):
         """Next xy (B, M, 2) and v^T J (B, k, T_obs*M*2) for cotangents v (B, k, M, 2), by torch.func.vjp."""
-        w = torch.as_tensor(np.asarray(window), dtype=self.dtype)
-        v = torch.as_tensor(np.asarray(cotangents), dtype=self.dtype)
+        w = torch.tensor(np.asarray(window), dtype=self.dtype)
+        v = torch.tensor(np.asarray(cotangents), dtype=self.dtype)
         with torch.no_grad():
             nxt, pullback = vjp(self.module, w)
             vJ = torch.stack([pullback(v[:, k])[0].reshape(len(w), -1) for k in range(v.shape[1])], dim=1)
