@@ -21,9 +21,9 @@ from omegaconf import OmegaConf  # noqa: E402
 from bench.states import DEFAULT_PATH, planning_states, settings  # noqa: E402
 from bench.step_time import sources  # noqa: E402
 from data.jobs import guarded, mlflow_run  # noqa: E402
+from distill.rollout import b_i  # noqa: E402
 from planner import mpc  # noqa: E402
 from planner.pygranso_zstep import import_pygranso  # noqa: E402
-from distill.rollout import b_i  # noqa: E402
 
 ZSTEPS = ("sqp", "pygranso")
 

@@ -2,7 +2,8 @@
 
 Rows come from the `planner` experiment grouped by run params (a Hydra multirun sweep lines up by itself);
 accuracy columns come from the latest `distill` run of each model and the latest `surrogate` run.
-A batch run counts as `episodes` episodes: its `merged`/`collision` metrics are rates, the others means.
+A batch run counts as `episodes` episodes: its `merged`/`collision` metrics are rates, the others means;
+t_merge is averaged over merged episodes only.
 """
 import os
 from pathlib import Path
@@ -62,8 +63,10 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
             row[f"{m}_rate"] = float(np.average(col, weights=w)) if col is not None and col.notna().all() else np.nan
         for m in ("t_merge", "C_max", "admm_iters_mean", "fallbacks"):
             col = g.get(f"metrics.{m}")
-            ok = col.notna() if col is not None else None
-            row[m] = float(np.average(col[ok], weights=w[ok])) if ok is not None and ok.any() else np.nan
+            # t_merge means something only for merges: a run that never merged logs the steps it drove
+            wm = w * g["metrics.merged"].fillna(0.0) if m == "t_merge" and "metrics.merged" in g else w
+            ok = col.notna() & (wm > 0) if col is not None else None
+            row[m] = float(np.average(col[ok], weights=wm[ok])) if ok is not None and ok.any() else np.nan
         row["d_min_m"] = float(g["metrics.d_min_m"].min()) if "metrics.d_min_m" in g else np.nan
         for m in ("step_ms_median", "step_ms_p95"):
             row[m] = float(g[f"metrics.{m}"].median()) if f"metrics.{m}" in g else np.nan

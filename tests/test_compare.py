@@ -47,7 +47,7 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, capsys):
     assert s["episodes"] == 13
     assert s["merged_rate"] == pytest.approx((1 + 0 + 1 + 0.5 * 10) / 13)
     assert s["collision_rate"] == pytest.approx(1.0 / 13)
-    assert s["t_merge"] == pytest.approx((9 * 3 + 12 * 10) / 13)
+    assert s["t_merge"] == pytest.approx((9 * 2 + 12 * 0.5 * 10) / (2 + 0.5 * 10))  # merged episodes only
     assert s["step_ms_median"] == pytest.approx(np.median([10.0, 30.0, 20.0, 40.0]))
     assert s["d_min_m"] == pytest.approx(3.9)
     assert s["grad_cosine"] == 0.97 and s["ade_1step_m"] == 0.1
