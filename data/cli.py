@@ -9,7 +9,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from data import dataset
-from data.jobs import CONF_DIR, guarded, mlflow_run
+from data.jobs import CONF_DIR, guarded, mlflow_run, writable
 from data.plot import plot_episode
 from data.policies import sample_policy
 
@@ -18,7 +18,7 @@ from data.policies import sample_policy
 def run(cfg: DictConfig) -> dict:
     """Build, save, log; returns the dataset's meta."""
     scenario = instantiate(cfg.scenario, _convert_="all")
-    root = Path(cfg.out_dir) / cfg.dataset.name
+    root = writable(cfg.out_dir, "out_dir") / cfg.dataset.name
     with mlflow_run("dataset", cfg, run_name=cfg.dataset.name):
         meta = dataset.make(cfg.dataset, scenario, root, OmegaConf.to_yaml(cfg, resolve=True))
         mlflow.log_metrics({f"n_{k}": v["windows"] for k, v in meta["splits"].items()})

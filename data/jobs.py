@@ -3,6 +3,7 @@ import contextlib
 import os
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -62,6 +63,18 @@ def mlflow_run(experiment: str, cfg: DictConfig, run_name: str | None = None, **
         except BaseException as e:
             mlflow.set_tag("error", f"{type(e).__name__}: {e}"[:5000])
             raise
+
+
+def writable(folder: Path, key: str) -> Path:
+    """`folder`, created and checked by writing a probe file; otherwise one UserError naming the config `key`."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        raise UserError(f"cannot write to the output folder {folder} ({e.strerror or e}); choose another with {key}=...") from None
+    return folder
 
 
 @contextlib.contextmanager

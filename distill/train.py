@@ -15,7 +15,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
 from data import dataset
-from data.jobs import DEFAULT_TRACKING_URI, UserError, atomic_file, mlflow_run
+from data.jobs import DEFAULT_TRACKING_URI, UserError, atomic_file, mlflow_run, writable
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
 from distill.perturb import box_windows, planner_like
@@ -59,6 +59,7 @@ def run(cfg: DictConfig):
     """Train or distil cfg.model.name, write models/<name>.{ckpt,onnx} (+ certificate.json); returns the metrics."""
     name = cfg.model.name
     dataset.read_meta(cfg.dataset_dir)  # a missing dataset stops here, naming make-dataset
+    writable(cfg.models_dir, "models_dir")
     torch.set_num_threads(cfg.threads)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     rank0 = int(os.environ.get("LOCAL_RANK", 0)) == 0  # Lightning's DDP launcher re-runs this job in child processes

@@ -3,7 +3,6 @@
 `planner --gradients=surrogate` (or `--gradients surrogate`) is the same as the Hydra override `gradients=surrogate`.
 """
 import sys
-import tempfile
 from pathlib import Path
 
 import hydra
@@ -12,7 +11,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from data.jobs import CONF_DIR, UserError, guarded, mlflow_run
+from data.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from planner import batch, closed_loop, mpc, nnmpc, report
 from planner.gradients import make_source
 from planner.zstep import ZSTEPS
@@ -66,17 +65,6 @@ def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=
     return closed_loop.drive(world, step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world)
 
 
-def writable(out_dir: Path) -> Path:
-    """`out_dir`, created and checked by writing a probe file; otherwise one UserError, before anything is written."""
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=out_dir):
-            pass
-    except OSError as e:
-        raise UserError(f"cannot write to the output folder {out_dir} ({e.strerror or e}); choose another with out_dir=...")
-    return out_dir
-
-
 @guarded
 def run(cfg: DictConfig) -> dict:
     """Drive, log and summarise (cfg.episodes > 0: batch statistics, see planner.batch); returns {method: metrics}."""
@@ -86,7 +74,7 @@ def run(cfg: DictConfig) -> dict:
     scenario = instantiate(cfg.scenario, _convert_="all")
     source = make_source(cfg.gradients, cfg.predictor, cfg.models_dir, cfg.fd_step, dict(cfg.analytic))
     s = settings(cfg, scenario)
-    out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir))
+    out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir), "out_dir")
     methods = ["admm", "nnmpc"] if cfg.method == "both" else [cfg.method]
     if cfg.episodes:
         return batch.run(cfg, scenario.name, source, methods, out_dir)

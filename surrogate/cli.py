@@ -12,7 +12,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig
 
 from data import dataset
-from data.jobs import CONF_DIR, UserError, guarded, mlflow_run
+from data.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from distill.predictors import ConstantVelocity
 from surrogate import evaluate, jacobians, models
 from surrogate.export import export
@@ -65,6 +65,7 @@ def run(cfg: DictConfig) -> dict:
     """Make the data, train, export, evaluate; returns the logged metrics."""
     if cfg.method not in METHODS:
         raise UserError(f"method={cfg.method}: choose one of {', '.join(METHODS)}")
+    writable(cfg.models_dir, "models_dir")
     rng = np.random.default_rng(cfg.seed)
     source = instantiate_user(cfg.predictor)
     if cfg.fused and not hasattr(source, "module"):

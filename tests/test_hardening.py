@@ -9,7 +9,7 @@ import pytest
 from hydra.utils import instantiate
 
 from conftest import compose_cfg
-from data.jobs import UserError, mlflow_run
+from data.jobs import UserError, guarded, mlflow_run
 from planner import cli, mpc, nnmpc
 from planner.closed_loop import backfill
 from planner.gradients import make_source
@@ -66,3 +66,26 @@ def test_failing_run_is_marked_failed_with_the_error():
     got = mlflow.get_run(run.info.run_id)
     assert got.info.status == "FAILED"
     assert got.data.tags["error"] == "UserError: the planner found nothing to plan"
+
+
+@pytest.mark.parametrize("job,overrides", [
+    ("make_dataset", ["dataset=tiny", "out_dir={blocked}"]),
+    ("distill", ["model=teacher", "dataset_dir={data}", "models_dir={blocked}", "run_dir={tmp}/run"]),
+    ("surrogate", ["dataset_dir={data}", "models_dir={blocked}"]),
+])
+def test_every_job_refuses_an_unwritable_output_folder_in_one_line(job, overrides, tmp_path, tiny_dataset, capsys):
+    from data.cli import run as make_dataset
+    from distill.train import run as distill
+    from surrogate.cli import run as surrogate
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    fill = dict(blocked=f"{blocker}/out", data=tiny_dataset, tmp=tmp_path)
+    cfg = compose_cfg(job, [o.format(**fill) for o in overrides])
+    run = {"make_dataset": make_dataset, "distill": guarded(distill), "surrogate": surrogate}[job]  # as the entry points call them
+    with pytest.raises(SystemExit) as e:
+        run(cfg)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: cannot write to the output folder") and "a_file" in err[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
