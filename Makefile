@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The whole pipeline at demo size (about 6 minutes on 2 cores): data, teacher, certified student, gradient
+# The whole pipeline at demo size (about 4 minutes on 2 cores once installed): data, teacher, certified student, gradient
 # surrogate, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, then the accuracy-vs-speed table.
 demo: $(STAMP)
 	$(BIN)/make-dataset
