@@ -53,26 +53,13 @@ def freeze(source, s: mpc.Settings, state) -> Frozen:
     return Frozen(*source.jacobian(state.obs.history, ego), ego)
 
 
-def single_thread(source):
-    """Rebuild an onnxruntime session of `source` (the surrogate's) with one intra- and one inter-op thread."""
-    import onnxruntime as ort
-
-    for holder in (getattr(source, "surrogate", None), getattr(source, "predictor", None)):
-        session = getattr(holder, "session", None)
-        if session is not None:
-            opts = ort.SessionOptions()
-            opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-            holder.session = ort.InferenceSession(session._model_path, opts, providers=["CPUExecutionProvider"])
-    return source
-
-
 def sources(models_dir) -> dict:
     """Every gradient source available: teacher (autodiff), student, surrogate, fd over the trained models; over the
     analytic predictor (with its exact Jacobians as `analytic`) for the ones whose models are missing."""
     out = {}
     for name in ("teacher", "student", "surrogate", "fd", "analytic"):
         try:
-            out[name] = single_thread(make_source(name, "auto", models_dir))
+            out[name] = make_source(name, "auto", models_dir)  # onnxruntime sessions run on one thread already
         except UserError as e:
             if name in ("teacher", "fd"):  # the same maths over the built-in predictor keeps the ratios meaningful
                 out[name] = make_source(name, "analytic", models_dir)

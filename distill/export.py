@@ -32,7 +32,7 @@ class OnnxPredictor:
         if not path.exists():
             raise UserError(f"{path} not found: run `distill model={self.name}`")
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1  # batch-1 calls from a planner: threads cost more than they give
+        opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # batch-1 calls from a planner: threads cost more
         try:
             self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         except Exception as e:

@@ -36,7 +36,9 @@ def load(models_dir="models", T_obs=8, M=5):
         raise UserError(f"{path} not found: run `surrogate`")
     expected = f"expected window (B, {T_obs}, {M}, 2) -> J (B, {2 * M}, {2 * T_obs * M})"
     try:
-        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # batch-1 calls from a planner: threads cost more
+        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own pybind types for unreadable or invalid graphs
         raise UserError(f"{path} is not a valid ONNX model ({str(e).splitlines()[0][:200]}); {expected}; re-run `surrogate`") from None
     inputs = {i.name: i.shape[1:] for i in session.get_inputs()}
