@@ -53,6 +53,16 @@ def freeze(source, s: mpc.Settings, state) -> Frozen:
     return Frozen(*source.jacobian(state.obs.history, ego), ego)
 
 
+def log_bench(run_name, settings: dict, srcs: dict, n_states: int, metrics: dict):
+    """One MLflow run in experiment `bench`: the settings (one thread), each source's predictor, the metrics."""
+    import mlflow
+
+    predictors = {f"predictor_{n}": s.predictor.name for n, s in srcs.items()}
+    cfg = OmegaConf.create({**settings, "threads": 1})
+    with mlflow_run("bench", cfg, run_name=run_name, n_states=n_states, **predictors):
+        mlflow.log_metrics(metrics)
+
+
 def sources(models_dir) -> dict:
     """Every gradient source available: teacher (autodiff), student, surrogate, fd over the trained models; over the
     analytic predictor (with its exact Jacobians as `analytic`) for the ones whose models are missing."""
@@ -124,13 +134,8 @@ def run(per_scenario=15, repeats=1, models_dir="models", states_path=DEFAULT_PAT
     for a, b in RATIOS:
         key = f"ratio_{a}_{b}"
         print(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
-    cfg = OmegaConf.create({"per_scenario": per_scenario, "repeats": repeats, "models_dir": models_dir,
-                            "states": str(states_path), "threads": 1})
-    predictors = {f"predictor_{n}": s.predictor.name for n, s in srcs.items()}
-    with mlflow_run("bench", cfg, run_name="step_time", n_states=len(states), **predictors):
-        import mlflow
-
-        mlflow.log_metrics(metrics)
+    log_bench("step_time", {"per_scenario": per_scenario, "repeats": repeats, "models_dir": models_dir,
+                            "states": str(states_path)}, srcs, len(states), metrics)
     return metrics
 
 

@@ -16,11 +16,10 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
 from bench.states import DEFAULT_PATH, planning_states, settings  # noqa: E402
-from bench.step_time import sources  # noqa: E402
-from data.jobs import guarded, mlflow_run  # noqa: E402
+from bench.step_time import log_bench, sources  # noqa: E402
+from data.jobs import guarded  # noqa: E402
 from distill.rollout import b_i  # noqa: E402
 from planner import mpc  # noqa: E402
 from planner.pygranso_zstep import import_pygranso  # noqa: E402
@@ -114,13 +113,8 @@ def run(per_scenario=4, models_dir="models", states_path=DEFAULT_PATH, only=()) 
     metrics = summary(rows)
     print(f"{len(states)} planning states ({', '.join(sorted({st.scenario for st in states}))}), one thread")
     print(table(rows, metrics))
-    cfg = OmegaConf.create({"per_scenario": per_scenario, "models_dir": models_dir, "states": str(states_path),
-                            "threads": 1, "sources": list(srcs)})
-    predictors = {f"predictor_{n}": s.predictor.name for n, s in srcs.items()}
-    with mlflow_run("bench", cfg, run_name="zstep_compare", n_states=len(states), **predictors):
-        import mlflow
-
-        mlflow.log_metrics(metrics)
+    log_bench("zstep_compare", {"per_scenario": per_scenario, "models_dir": models_dir, "states": str(states_path),
+                                "sources": list(srcs)}, srcs, len(states), metrics)
     return metrics
 
 

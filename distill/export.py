@@ -20,23 +20,28 @@ def export_onnx(module: torch.nn.Module, path: Path, t_obs=8, m=5):
     atomic_file(Path(path), write)
 
 
+def onnx_session(path: Path, advice: str):
+    """A single-threaded onnxruntime session on `path`; an unreadable or invalid file is one UserError naming it."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # batch-1 calls from a planner: threads cost more
+    try:
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own pybind types for unreadable or invalid graphs
+        raise UserError(f"{path} is not a valid ONNX model ({str(e).splitlines()[0][:200]}); {advice}") from None
+
+
 class OnnxPredictor:
     """phi(window) by onnxruntime from an exported file; a missing or corrupt file is a UserError naming it."""
 
     def __init__(self, path, name=None):
-        """Open path with one intra-op thread; name defaults to the file's stem."""
-        import onnxruntime as ort
-
+        """Open path with one thread; name defaults to the file's stem."""
         path = Path(path)
         self.name = name or path.stem
         if not path.exists():
             raise UserError(f"{path} not found: run `distill model={self.name}`")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # batch-1 calls from a planner: threads cost more
-        try:
-            self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        except Exception as e:
-            raise UserError(f"corrupt ONNX file {path}: {str(e).splitlines()[0][:200]}") from None
+        self.session = onnx_session(path, f"re-run `distill model={self.name}`")
 
     def phi(self, window):
         """Next xy (B, M, 2) in metres, float64."""

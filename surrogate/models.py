@@ -4,6 +4,7 @@ from pathlib import Path
 import numpy as np
 
 from data.jobs import UserError
+from distill.export import onnx_session
 
 
 class Surrogate:
@@ -29,18 +30,11 @@ class Surrogate:
 
 def load(models_dir="models", T_obs=8, M=5):
     """The surrogate from <models_dir>/surrogate.onnx, checked against window (B, T_obs, M, 2) -> J (B, M*2, T_obs*M*2)."""
-    import onnxruntime as ort
-
     path = Path(models_dir) / "surrogate.onnx"
     if not path.exists():
         raise UserError(f"{path} not found: run `surrogate`")
     expected = f"expected window (B, {T_obs}, {M}, 2) -> J (B, {2 * M}, {2 * T_obs * M})"
-    try:
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # batch-1 calls from a planner: threads cost more
-        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    except Exception as e:  # onnxruntime raises its own pybind types for unreadable or invalid graphs
-        raise UserError(f"{path} is not a valid ONNX model ({str(e).splitlines()[0][:200]}); {expected}; re-run `surrogate`") from None
+    session = onnx_session(path, f"{expected}; re-run `surrogate`")
     inputs = {i.name: i.shape[1:] for i in session.get_inputs()}
     outputs = {o.name: o.shape[1:] for o in session.get_outputs()}
     if inputs != {"window": [T_obs, M, 2]} or outputs.get("J") != [2 * M, 2 * T_obs * M] or \
