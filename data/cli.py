@@ -4,14 +4,12 @@ from pathlib import Path
 
 import hydra
 import mlflow
-import numpy as np
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from data import dataset
 from data.jobs import CONF_DIR, guarded, mlflow_run, writable
 from data.plot import plot_episode
-from data.policies import sample_policy
 
 
 @guarded
@@ -25,12 +23,10 @@ def run(cfg: DictConfig) -> dict:
         mlflow.log_metrics({"build_s": meta["build_s"], **{k: float(v) for k, v in meta["stats"].items()}})
         mlflow.log_artifact(str(root / "meta.json"))
         with tempfile.TemporaryDirectory() as tmp:
-            for e in range(cfg.plot_episodes):
-                seed = 1000 + e
-                policy = sample_policy(np.random.default_rng([seed, 1]), scenario.y_ref, scenario.platoon_v, dict(cfg.dataset.policy))
-                states, _, world = dataset.rollout(scenario, policy, seed, cfg.dataset.steps)
+            for e, seed in enumerate(dataset.episode_seeds(cfg.dataset.seed, cfg.plot_episodes)):  # the dataset's first
+                states, _, world, _ = dataset.explore(scenario, dict(cfg.dataset.policy), seed, cfg.dataset.steps)
                 png = Path(tmp) / f"episode_{e}.png"
-                plot_episode(states, world.road, png, f"{scenario.name} seed {seed}", scenario.x_ref)
+                plot_episode(states, world.road, png, f"{scenario.name} episode {e} (seed {seed})", scenario.x_ref)
                 mlflow.log_artifact(str(png), "plots")
     s = meta["stats"]
     print(f"dataset {root}: " + ", ".join(f"{k} {v['windows']}" for k, v in meta["splits"].items())

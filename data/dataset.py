@@ -46,12 +46,21 @@ def windows(xy, yielding, t_obs: int):
     return X, xy[last + 1], last, yielding[last]
 
 
-def episode(scenario, policy_ranges, seed, steps, t_obs):
-    """One seeded episode with a sampled exploratory ego: its windows and what happened in it."""
-    rng = np.random.default_rng([seed, 1])
+def episode_seeds(seed: int, episodes: int):
+    """The world seed of each of a dataset's episodes."""
+    return [int(s) for s in np.random.SeedSequence(seed).generate_state(episodes)]
+
+
+def explore(scenario, policy_ranges, seed, steps):
+    """One seeded episode with a sampled exploratory ego: states, yielding flags, final world, the policy."""
     world0 = scenario.make_world(seed)
-    policy = sample_policy(rng, scenario.y_ref, float(world0.z[1:, 3].mean()), policy_ranges)
-    states, yielding, world = rollout(scenario, policy, seed, steps)
+    policy = sample_policy(np.random.default_rng([seed, 1]), scenario.y_ref, float(world0.z[1:, 3].mean()), policy_ranges)
+    return (*rollout(scenario, policy, seed, steps), policy)
+
+
+def episode(scenario, policy_ranges, seed, steps, t_obs):
+    """One seeded episode's windows and what happened in it."""
+    states, yielding, world, policy = explore(scenario, policy_ranges, seed, steps)
     X, Y, last, y_flags = windows(states[..., :2], yielding, t_obs)
     stats = {"collided": bool(world.collisions), "attempts": policy.attempts, "any_yield": bool(yielding.any()),
              "merged": bool(world.road.lane_of(world.z[0, 1]) == world.road.lane_of(scenario.y_ref))}
@@ -67,9 +76,8 @@ def build(scenario: Scenario, policy_ranges: dict, episodes: int, steps: int, t_
     which = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
     if min(len(e) for e in which.values()) == 0:
         raise UserError(f"dataset.episodes={episodes} leaves a split empty with dataset.split={list(split_fractions)}")
-    seeds = np.random.SeedSequence(seed).generate_state(episodes)
     results = Parallel(n_jobs=n_jobs)(
-        delayed(episode)(scenario, policy_ranges, int(s), steps, t_obs) for s in seeds)
+        delayed(episode)(scenario, policy_ranges, s, steps, t_obs) for s in episode_seeds(seed, episodes))
     splits = {}
     for name, eps in which.items():
         eps = np.sort(eps)
