@@ -2,13 +2,14 @@
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from data.jobs import UserError, atomic_file
 
 
-def export_onnx(module: torch.nn.Module, path: Path, t_obs=8, m=5):
-    """Write `module` (window (B, T_obs, M, 2) -> next (B, M, 2)) to `path` atomically, batch size dynamic."""
+def export_onnx(module, path: Path, t_obs=8, m=5):
+    """Write the torch `module` (window (B, T_obs, M, 2) -> next (B, M, 2)) to `path` atomically, batch size dynamic."""
+    import torch  # here, not at the top: the planner reads ONNX files through this module without torch
+
     example = torch.zeros(2, t_obs, m, 2)
 
     def write(tmp):
