@@ -114,10 +114,8 @@ def load_predictor(name, models_dir="models", analytic=None):
         return Analytic(**(analytic or {}))
     if name not in PREDICTORS:
         raise UserError(f"unknown predictor '{name}'; choose one of {', '.join(PREDICTORS)}")
-    try:
-        from distill import models
-    except ImportError as e:
-        raise UserError(f"predictor '{name}' needs distill.models, which is not installed here ({e}); run `distill model={name}`")
+    from distill import models  # imported here: it needs torch, which cv, analytic and surrogate runs do not
+
     return models.load(name, models_dir=models_dir)
 
 
@@ -131,10 +129,8 @@ def make_source(gradients, predictor="auto", models_dir="models", fd_step=1e-2, 
     if gradients == "teacher":
         return Autodiff(gradients, model)
     if gradients == "surrogate":
-        try:
-            from surrogate import models as surrogate_models
-        except ImportError as e:
-            raise UserError(f"gradients=surrogate needs the gradient network, which is not available ({e}); run `surrogate`")
+        from surrogate import models as surrogate_models
+
         return Surrogate(gradients, model, surrogate_models.load(models_dir=models_dir))
     if gradients == "fd":
         return CentralDifferences(gradients, model, fd_step)
