@@ -56,13 +56,17 @@ def jac_rel_err(predictor, reference, windows):
     return {"jac_rel_err": float(rel(J, R)), "jac_rel_err_ego": float(rel(J[..., 0, :], R[..., 0, :]))}
 
 
-def forward_us(predictor, window, repeats=200):
-    """Median wall time of one phi call on a single window, microseconds."""
-    w = np.asarray(window[:1], dtype=float)
-    predictor.phi(w)
+def time_us(fn, arg, repeats=200, budget_s=float("inf")):
+    """Median wall time of fn(arg) in microseconds, after a warm-up; stops early once budget_s seconds are spent."""
+    fn(arg)
     times = []
-    for _ in range(repeats):
+    while len(times) < repeats and sum(times) < budget_s:
         t0 = time.perf_counter()
-        predictor.phi(w)
+        fn(arg)
         times.append(time.perf_counter() - t0)
     return float(np.median(times) * 1e6)
+
+
+def forward_us(predictor, window, repeats=200):
+    """Median wall time of one phi call on a single window, microseconds."""
+    return time_us(predictor.phi, np.asarray(window[:1], dtype=float), repeats)

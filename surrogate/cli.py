@@ -13,11 +13,12 @@ from omegaconf import DictConfig
 
 from data import dataset
 from data.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
 from surrogate import evaluate, jacobians, models
 from surrogate.export import export
 from surrogate.network import Fused
-from surrogate.training import JacobianData, SurrogateModule, rel_err
+from surrogate.training import JacobianData, rel_err
 
 METHODS = ("autodiff", "central")
 
@@ -56,7 +57,7 @@ def time_autodiff(cfg, window):
             predictor = instantiate_user(cfg.predictor, name=name)
         except UserError:
             continue  # not trained here: nothing to time
-        out[f"{name}_autodiff_us"] = evaluate.time_us(predictor.phi_jac, window, cfg.timing.repeats, cfg.timing.budget_s)
+        out[f"{name}_autodiff_us"] = time_us(predictor.phi_jac, window, cfg.timing.repeats, cfg.timing.budget_s)
     return out
 
 
@@ -106,10 +107,10 @@ def run(cfg: DictConfig) -> dict:
         metrics.update({f"{k}{suffix}": v for suffix, s in scores.items() for k, v in s.items()})
 
         window = test[:1]
-        metrics["forward_us"] = evaluate.time_us(surrogate.jac, window, cfg.timing.repeats, cfg.timing.budget_s)
+        metrics["forward_us"] = time_us(surrogate.jac, window, cfg.timing.repeats, cfg.timing.budget_s)
         if surrogate.fused:
-            metrics["fused_us"] = evaluate.time_us(surrogate.phi_jac, window, cfg.timing.repeats, cfg.timing.budget_s)
-        metrics["source_autodiff_us"] = evaluate.time_us(source.phi_jac, window, cfg.timing.repeats, cfg.timing.budget_s)
+            metrics["fused_us"] = time_us(surrogate.phi_jac, window, cfg.timing.repeats, cfg.timing.budget_s)
+        metrics["source_autodiff_us"] = time_us(source.phi_jac, window, cfg.timing.repeats, cfg.timing.budget_s)
         metrics.update(time_autodiff(cfg, window))
         metrics.update({"n_train": len(train[0]), "n_val": len(val[0]), "n_test": len(W)})
         mlflow.log_metrics(metrics)

@@ -1,11 +1,9 @@
-"""Accuracy where the planner uses it, and speed: composed d b_i / d Z on held-out planning states, microseconds per call.
+"""Accuracy where the planner uses it: the composed d b_i / d Z on held-out planning states.
 
 Every Jacobian source is composed with the same rollout values (the source predictor's phi, computed once, batched,
 for all states), so the figures measure the gradient alone. The direct term of d b_i / d Z (the ego's own xy) is exact for every source; the `react_*`
 figures isolate what the predictor contributes, d p_i / d Z of the other cars.
 """
-import time
-
 import numpy as np
 
 from distill.rollout import b_i_jacobian, rollout_jacobian
@@ -58,13 +56,3 @@ def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R
             s["react_rel_err"].append(relative(react_hat, react))
     return {name: {k: float(np.mean(v)) for k, v in s.items()} for name, s in scores.items()}
 
-
-def time_us(fn, arg, repeats=200, budget_s=3.0):
-    """Median wall time of fn(arg) in microseconds, after a warm-up; stops early once budget_s seconds are spent."""
-    fn(arg)
-    times = []
-    while len(times) < repeats and sum(times) < budget_s:
-        t0 = time.perf_counter()
-        fn(arg)
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e6)
