@@ -2,7 +2,6 @@
 import csv
 
 import mlflow
-import pytest
 
 from conftest import compose_cfg
 from planner import cli

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from conftest import compose_cfg
-from data.jobs import UserError
 from planner.compare import run
 
 
