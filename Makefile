@@ -25,6 +25,7 @@ demo: $(STAMP)
 	$(BIN)/compare
 
 test: $(STAMP)
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
 
 # One MPC step per gradient source on saved planning states, single-threaded, with the ratios (needs `make demo` models).

@@ -13,7 +13,7 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from data.jobs import CONF_DIR, UserError, atomic_file
+from core.jobs import CONF_DIR, UserError, atomic_file
 from planner import admm, mpc
 
 DEFAULT_PATH = Path("outputs/bench/states.npz")
@@ -54,7 +54,7 @@ def collect(scenarios=SCENARIOS, per_scenario=15, gradients="analytic", seed=0, 
         scenario = instantiate(cfg.scenario, _convert_="all")
         source = make_source(cfg.gradients, cfg.predictor, cfg.models_dir, cfg.fd_step, dict(cfg.analytic))
         s, seen = settings(name, tuple(overrides)), []
-        step = lambda obs, warm: seen.append((obs, warm)) or mpc.admm_step(s, obs, source, warm)  # noqa: E731
+        step = lambda obs, warm: seen.append((obs, warm)) or mpc.admm_step(s, obs, source, warm)
         drive(scenario.make_world(cfg.seed), step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs,
               cfg.max_steps, cfg.world)
         keep = np.unique(np.linspace(0, len(seen) - 1, min(per_scenario, len(seen))).round().astype(int))

@@ -18,7 +18,8 @@ import numpy as np  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from bench.states import DEFAULT_PATH, planning_states, settings  # noqa: E402
-from data.jobs import UserError, guarded, mlflow_run  # noqa: E402
+from core.jobs import UserError, guarded, mlflow_run  # noqa: E402
+from core.rollout import ego_xy  # noqa: E402
 from planner import mpc  # noqa: E402
 from planner.gradients import make_source  # noqa: E402
 
@@ -49,7 +50,7 @@ def freeze(source, s: mpc.Settings, state) -> Frozen:
         Z = mpc.simulate(state.obs.z0, np.zeros(s.T_p), np.zeros(s.T_p), s.params)
     else:
         Z = mpc.shift(state.warm).Z
-    ego = np.reshape(Z, (s.T_p, 4))[:, :2]
+    ego = ego_xy(Z, s.T_p)
     return Frozen(*source.jacobian(state.obs.history, ego), ego)
 
 

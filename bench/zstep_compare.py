@@ -19,8 +19,8 @@ import numpy as np  # noqa: E402
 
 from bench.states import DEFAULT_PATH, planning_states, settings  # noqa: E402
 from bench.step_time import log_bench, sources  # noqa: E402
-from data.jobs import guarded  # noqa: E402
-from distill.rollout import b_i  # noqa: E402
+from core.jobs import guarded  # noqa: E402
+from core.rollout import b_i, ego_xy  # noqa: E402
 from planner import mpc  # noqa: E402
 from planner.pygranso_zstep import import_pygranso  # noqa: E402
 
@@ -42,7 +42,7 @@ def violation(s: mpc.Settings, state, source, plan):
     """max(0, -min b_i) (m^2) of the plan's own states Z against the predictor's reaction to them."""
     if plan is None:
         return np.nan
-    values = source.values(state.obs.history, np.reshape(plan.Z, (s.T_p, 4))[None, :, :2])[0]
+    values = source.values(state.obs.history, ego_xy(plan.Z, s.T_p)[None])[0]
     return float(max(0.0, -b_i(values, s.R).min(initial=np.inf)))
 
 

@@ -7,8 +7,8 @@ import mlflow
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from core.jobs import CONF_DIR, guarded, mlflow_run, writable
 from data import dataset
-from data.jobs import CONF_DIR, guarded, mlflow_run, writable
 from data.plot import plot_episode
 
 

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from data.jobs import UserError, atomic_dir
+from core.jobs import UserError, atomic_dir
 from data.policies import sample_policy
 from data.scenarios import Scenario
 
 FORMAT = 1
 SPLITS = ("train", "val", "test")
-ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and M = N + 1)
+ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and SLOTS = N + 1)
     "X": ("f", lambda t, m: (t, m, 2)),
     "Y": ("f", lambda t, m: (m, 2)),
     "episode": ("i", lambda t, m: ()),
@@ -27,7 +27,7 @@ ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and M = N + 1)
 
 
 def rollout(scenario: Scenario, policy, seed: int, steps: int):
-    """Run one episode; returns states (steps+1, M, 4), yielding (steps+1, M), the world (ends early on a collision)."""
+    """Run one episode; returns states (steps+1, M, 4), yielding (steps+1, SLOTS), the world (ends early on a collision)."""
     world = scenario.make_world(seed)
     states, yielding = [world.z.copy()], [world.yielding.copy()]
     for _ in range(steps):
@@ -40,7 +40,7 @@ def rollout(scenario: Scenario, policy, seed: int, steps: int):
 
 
 def windows(xy, yielding, t_obs: int):
-    """All (X (n, t_obs, M, 2), Y (n, M, 2), last observed step (n,), yielding at it (n, M)) of one episode."""
+    """All (X (n, t_obs, SLOTS, 2), Y (n, SLOTS, 2), last observed step (n,), yielding at it (n, SLOTS)) of one episode."""
     last = np.arange(t_obs - 1, len(xy) - 1)
     X = np.stack([xy[t - t_obs + 1 : t + 1] for t in last]) if len(last) else np.zeros((0, t_obs) + xy.shape[1:])
     return X, xy[last + 1], last, yielding[last]

@@ -56,19 +56,19 @@ def overlap(z1, z2, road: Road) -> bool:
 
 @dataclass
 class World:
-    """Mutable traffic state: z (M, 4) bicycle states, vehicle 0 the ego; drivers[j-1] drives vehicle j >= 1."""
+    """Mutable traffic state: z (SLOTS, 4) bicycle states, vehicle 0 the ego; drivers[j-1] drives vehicle j >= 1."""
 
     road: Road
     z: np.ndarray
     drivers: list
-    will_yield: np.ndarray  # (M,) latched hidden decision per driver, drawn once per episode
+    will_yield: np.ndarray  # (SLOTS,) latched hidden decision per driver, drawn once per episode
     lane_change: bool = False  # MOBIL lane changes allowed (three-lane scenarios)
     params: bicycle.BicycleParams = field(default_factory=bicycle.BicycleParams)
     mobil_period: float = 1.0  # seconds between a driver's lane-change decisions
     t: float = 0.0
     target_lane: np.ndarray = None
     noticed_at: np.ndarray = None  # time each driver first noticed the current intrusion (nan: none)
-    yielding: np.ndarray = None  # (M,) whether each driver brakes for the ego at this step
+    yielding: np.ndarray = None  # (SLOTS,) whether each driver brakes for the ego at this step
     collisions: list = field(default_factory=list)  # (time s, i, j) of every body overlap seen
 
     def __post_init__(self):
@@ -89,7 +89,7 @@ class World:
         return self.drivers[i - 1] if i > 0 else IDMDriver()
 
     def in_lane(self, lane):
-        """Mask (M,) of vehicles occupying `lane`: nearest to its centre, or an other car changing into it."""
+        """Mask (SLOTS,) of vehicles occupying `lane`: nearest to its centre, or an other car changing into it."""
         mask = self.road.lane_of(self.z[:, 1]) == lane
         mask[1:] |= self.target_lane[1:] == lane
         return mask

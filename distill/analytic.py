@@ -39,7 +39,7 @@ class Analytic:
         return L * Ha * Hv, L, Ha, Hv, rho
 
     def phi(self, window):
-        """Next xy (B, M, 2) from window (B, T_obs, M, 2), metres; numpy or torch."""
+        """Next xy (B, SLOTS, 2) from window (B, T_obs, SLOTS, 2), metres; numpy or torch."""
         xp = _namespace(window)
         last, prev = window[:, -1], window[:, -2]
         disp = last - prev
@@ -50,7 +50,7 @@ class Analytic:
         return xp.stack([last[..., 0] + disp[..., 0] * keep, last[..., 1] + disp[..., 1]], -1)
 
     def phi_jac(self, window):
-        """Next xy (B, M, 2) and the exact local Jacobian d next.flatten() / d window.flatten() (B, M*2, T_obs*M*2)."""
+        """Next xy (B, SLOTS, 2) and the exact local Jacobian d next.flatten() / d window.flatten() (B, SLOTS*2, T_obs*SLOTS*2)."""
         window = np.asarray(window, dtype=float)
         b, t_obs, m, _ = window.shape
         last, prev = window[:, -1], window[:, -2]

@@ -16,16 +16,16 @@ gives ||Hess phi_k|| <= s_k (||Hess a_k|| + sup|tanh''| ||grad a_k||^2). cv does
 """
 import numpy as np
 
+from core.jobs import UserError
+from core.rollout import SLOTS, T_OBS
 from data import bicycle
-from data.jobs import UserError
 
 G1, G2 = 1.1290, 0.7979  # sup|GELU'|, sup|GELU''| (safe for the erf and tanh forms)
 G2_TANH = 0.7699  # sup|tanh''| = 4 / (3 sqrt 3)
-T_OBS, M = 8, 5
 
 
-def ego_columns(t_obs=T_OBS, m=M):
-    """Indices of the ego's x, y in a window flattened (T_obs, M, 2)."""
+def ego_columns(t_obs=T_OBS, m=SLOTS):
+    """Indices of the ego's x, y in a window flattened (T_obs, SLOTS, 2)."""
     return np.array([t * m * 2 + c for t in range(t_obs) for c in range(2)])
 
 
@@ -53,7 +53,7 @@ def constants(weights, s, box):
 def sampled(grad_fn, jac64_fn, windows, fd_step=1e-4, chunk=100):
     """Largest sampled theta_x, theta_y (autodiff gradients) and L (finite-difference Hessians) over `windows`.
 
-    grad_fn(w) -> (next, J (B, M*2, T_obs*M*2)) by autodiff; jac64_fn(w) -> J (B, M*2, 2 T_obs) w.r.t. the ego's
+    grad_fn(w) -> (next, J (B, SLOTS*2, T_obs*SLOTS*2)) by autodiff; jac64_fn(w) -> J (B, SLOTS*2, 2 T_obs) w.r.t. the ego's
     inputs only, in float64, differenced for the Hessians.
     """
     cols = ego_columns()
@@ -104,7 +104,7 @@ def smallest_positive_sv(X, tol=1e-12):
     return float(sv[sv > tol * sv[0]].min())
 
 
-def rho_bound(c, box, cost, t_p=8, n_others=M - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, dt=0.2):
+def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, dt=0.2):
     """Theorem 1: rho > max{1, (1 + 2 sigma_min(C)) L_J M}, with Lemma 3's L_1, L_2, L_3, L_g; returns every term.
 
     Assumptions: the ego's own |x| <= box.x and |y| <= box.y over the horizon (x_max, y_max); one multiplier

@@ -2,7 +2,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from data.jobs import CONF_DIR, guarded
+from core.jobs import CONF_DIR, guarded
 from distill.train import run
 
 

@@ -43,7 +43,7 @@ class WindowData(L.LightningDataModule):
 
 
 def label(teacher, X, rng, projections, chunk=1024):
-    """Teacher next (n, M, 2), cotangents v (n, k, M, 2) (ego rows 0: the plan fills that slot), v^T J (n, k, T_obs*M*2)."""
+    """Teacher next (n, SLOTS, 2), cotangents v (n, k, SLOTS, 2) (ego rows 0: the plan fills that slot), v^T J (n, k, T_obs*SLOTS*2)."""
     v = rng.standard_normal((len(X), projections) + X.shape[2:])
     v[:, :, 0] = 0.0
     parts = [teacher.phi_vjp(X[i : i + chunk], v[i : i + chunk]) for i in range(0, len(X), chunk)]

@@ -3,11 +3,11 @@ from pathlib import Path
 
 import numpy as np
 
-from data.jobs import UserError, atomic_file
+from core.jobs import UserError, atomic_file
 
 
 def export_onnx(module, path: Path, t_obs=8, m=5):
-    """Write the torch `module` (window (B, T_obs, M, 2) -> next (B, M, 2)) to `path` atomically, batch size dynamic."""
+    """Write the torch `module` (window (B, T_obs, SLOTS, 2) -> next (B, SLOTS, 2)) to `path` atomically, batch size dynamic."""
     import torch  # here, not at the top: the planner reads ONNX files through this module without torch
 
     example = torch.zeros(2, t_obs, m, 2)
@@ -45,7 +45,7 @@ class OnnxPredictor:
         self.session = onnx_session(path, f"re-run `distill model={self.name}`")
 
     def phi(self, window):
-        """Next xy (B, M, 2) in metres, float64."""
+        """Next xy (B, SLOTS, 2) in metres, float64."""
         x = np.ascontiguousarray(window, dtype=np.float32)
         return self.session.run(None, {"window": x})[0].astype(float)
 

@@ -1,17 +1,17 @@
 """Prediction metrics on a dataset split, in metres, over the other cars (slots 1..N): 1-step and T_p-step rollout ADE/FDE.
 
-The rollout is the planner's recursion (distill.rollout.rollout) with the ego's recorded future fed in. The yield
+The rollout is the planner's recursion (core.rollout.rollout) with the ego's recorded future fed in. The yield
 subset holds the windows of episodes in which some driver brakes for the ego at least once.
 """
 import time
 
 import numpy as np
 
-from distill.rollout import rollout
+from core.rollout import rollout
 
 
 def rollout_cases(a: dict, t_p=8):
-    """history (n, T_obs, M, 2), ego future (n, T_p, 2), others' future (n, T_p, N, 2), yield flag (n,) from split arrays."""
+    """history (n, T_obs, SLOTS, 2), ego future (n, T_p, 2), others' future (n, T_p, N, 2), yield flag (n,) from split arrays."""
     key = {(e, s): i for i, (e, s) in enumerate(zip(a["episode"], a["step"]))}
     starts, futures = [], []
     for i, (e, s) in enumerate(zip(a["episode"], a["step"])):
@@ -51,7 +51,7 @@ def jac_rel_err(predictor, reference, windows):
     """
     _, J = predictor.phi_jac(windows)
     _, R = reference.phi_jac(windows)
-    J, R = J[:, 2:].reshape(len(J), 8, -1, 5, 2), R[:, 2:].reshape(len(R), 8, -1, 5, 2)  # (B, 8 rows, T_obs, M, 2)
+    J, R = J[:, 2:].reshape(len(J), 8, -1, 5, 2), R[:, 2:].reshape(len(R), 8, -1, 5, 2)  # (B, 8 rows, T_obs, SLOTS, 2)
     rel = lambda a, b: np.linalg.norm(a - b) / np.linalg.norm(b)
     return {"jac_rel_err": float(rel(J, R)), "jac_rel_err_ego": float(rel(J[..., 0, :], R[..., 0, :]))}
 

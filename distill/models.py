@@ -1,7 +1,7 @@
 """Trained predictors behind the shared interface: `load(name)` -> .name, .phi(window), .phi_jac(window), .module.
 
-phi maps windows (B, T_obs, M, 2) of xy in metres to next xy (B, M, 2); phi_jac also returns the exact local
-Jacobian (B, M*2, T_obs*M*2) of the flattened next w.r.t. the flattened window (C order).
+phi maps windows (B, T_obs, SLOTS, 2) of xy in metres to next xy (B, SLOTS, 2); phi_jac also returns the exact local
+Jacobian (B, SLOTS*2, T_obs*SLOTS*2) of the flattened next w.r.t. the flattened window (C order).
 """
 from pathlib import Path
 
@@ -10,7 +10,7 @@ import torch
 from hydra.utils import instantiate
 from torch.func import vjp
 
-from data.jobs import UserError
+from core.jobs import UserError
 from distill.predictors import ConstantVelocity
 from distill.student import phi_jac64
 
@@ -21,17 +21,17 @@ class TorchPredictor:
     """A torch network as a numpy predictor: forward in the network's dtype, Jacobians by reverse-mode autodiff."""
 
     def __init__(self, name, module):
-        """name for reports; module maps a torch window (B, T_obs, M, 2) to next (B, M, 2), metres."""
+        """name for reports; module maps a torch window (B, T_obs, SLOTS, 2) to next (B, SLOTS, 2), metres."""
         self.name, self.module = name, module.eval()
         self.dtype = next(module.parameters()).dtype
 
     def phi(self, window):
-        """Next xy (B, M, 2) in metres, float64."""
+        """Next xy (B, SLOTS, 2) in metres, float64."""
         with torch.no_grad():
             return self.module(torch.tensor(np.asarray(window), dtype=self.dtype)).double().numpy()
 
     def phi_vjp(self, window, cotangents):
-        """Next xy (B, M, 2) and v^T J (B, k, T_obs*M*2) for cotangents v (B, k, M, 2), by torch.func.vjp."""
+        """Next xy (B, SLOTS, 2) and v^T J (B, k, T_obs*SLOTS*2) for cotangents v (B, k, SLOTS, 2), by torch.func.vjp."""
         w = torch.tensor(np.asarray(window), dtype=self.dtype)
         v = torch.tensor(np.asarray(cotangents), dtype=self.dtype)
         with torch.no_grad():
@@ -40,7 +40,7 @@ class TorchPredictor:
         return nxt.double().numpy(), vJ.double().numpy()
 
     def phi_jac(self, window):
-        """Next xy (B, M, 2) and the exact J (B, M*2, T_obs*M*2): one vjp per output coordinate (faster than jacrev here)."""
+        """Next xy (B, SLOTS, 2) and the exact J (B, SLOTS*2, T_obs*SLOTS*2): one vjp per output coordinate (faster than jacrev here)."""
         b, _, m, _ = np.shape(window)
         return self.phi_vjp(window, np.tile(np.eye(m * 2).reshape(1, m * 2, m, 2), (b, 1, 1, 1)))
 
@@ -55,15 +55,15 @@ class StudentPredictor(TorchPredictor):
         self.s = module.s.double().numpy()
 
     def phi(self, window):
-        """Next xy (B, M, 2) in metres, float64."""
+        """Next xy (B, SLOTS, 2) in metres, float64."""
         return phi_jac64(self.weights, self.s, window, jac=False)
 
     def phi_jac(self, window):
-        """Next xy (B, M, 2) and the exact J (B, M*2, T_obs*M*2), float64."""
+        """Next xy (B, SLOTS, 2) and the exact J (B, SLOTS*2, T_obs*SLOTS*2), float64."""
         return phi_jac64(self.weights, self.s, window)
 
     def jac_cols(self, window, cols):
-        """The Jacobian's columns `cols` only (B, M*2, len(cols)), float64: cheap when only the ego's inputs matter."""
+        """The Jacobian's columns `cols` only (B, SLOTS*2, len(cols)), float64: cheap when only the ego's inputs matter."""
         return phi_jac64(self.weights, self.s, window, cols=cols)[1]
 
 

@@ -8,7 +8,7 @@ import numpy as np
 
 
 def planner_like(window, rng, lat_rate=0.4, dv=0.3, dx=2.0, other_speed=0.1):
-    """Perturbed copies (B, T_obs, M, 2) of dataset windows; rates in m/step, offsets in m, other_speed a fraction."""
+    """Perturbed copies (B, T_obs, SLOTS, 2) of dataset windows; rates in m/step, offsets in m, other_speed a fraction."""
     w = np.array(window, dtype=float, copy=True)
     b, t_obs, m, _ = w.shape
     k = rng.integers(1, t_obs + 1, size=b)  # how many of the newest ego positions come from the plan
@@ -21,7 +21,7 @@ def planner_like(window, rng, lat_rate=0.4, dv=0.3, dx=2.0, other_speed=0.1):
 
 
 def box_windows(n, rng, box, t_obs=8, m=5):
-    """Off-distribution windows (n, T_obs, M, 2) inside the certificate's box: random positions, speeds, accelerations."""
+    """Off-distribution windows (n, T_obs, SLOTS, 2) inside the certificate's box: random positions, speeds, accelerations."""
     start = np.stack([rng.uniform(-box["x"], box["x"], (n, m)), rng.uniform(-box["y"], box["y"], (n, m))], -1)
     v0 = np.stack([rng.uniform(0.0, box["dx"], (n, m)), rng.uniform(-box["dy"], box["dy"], (n, m))], -1)
     acc = rng.normal(0.0, 0.05, (n, t_obs - 1, m, 2))

@@ -8,11 +8,11 @@ class ConstantVelocity:
     name = "cv"
 
     def phi(self, window):
-        """Next xy (B, M, 2) from window (B, T_obs, M, 2), metres."""
+        """Next xy (B, SLOTS, 2) from window (B, T_obs, SLOTS, 2), metres."""
         return 2.0 * window[:, -1] - window[:, -2]
 
     def phi_jac(self, window):
-        """Next xy (B, M, 2) and its exact local Jacobian (B, M*2, T_obs*M*2)."""
+        """Next xy (B, SLOTS, 2) and its exact local Jacobian (B, SLOTS*2, T_obs*SLOTS*2)."""
         b, t_obs, m, _ = window.shape
         J = np.zeros((m * 2, t_obs, m * 2))
         J[:, -1] = 2.0 * np.eye(m * 2)

@@ -9,26 +9,26 @@ import numpy as np
 import torch
 from torch import nn
 
-T_OBS, M = 8, 5
+from core.rollout import SLOTS, T_OBS
 
 
 def feature_map(pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
-    """P (78, 80): window flattened (T_obs, M, 2) in metres -> scaled relative positions, velocities, accelerations."""
+    """P (78, 80): window flattened (T_obs, SLOTS, 2) in metres -> scaled relative positions, velocities, accelerations."""
     def at(t, i, c):
         """The window-shaped indicator of coordinate c of slot i at time t."""
-        e = np.zeros((T_OBS, M, 2))
+        e = np.zeros((T_OBS, SLOTS, 2))
         e[t, i, c] = 1.0
         return e
 
     rows = []
-    for i in range(1, M):  # others' last position relative to the ego's last position
+    for i in range(1, SLOTS):  # others' last position relative to the ego's last position
         for c in range(2):
             rows.append((at(-1, i, c) - at(-1, 0, c)) / pos_scale)
-    for i in range(M):  # last velocity (m per step)
+    for i in range(SLOTS):  # last velocity (m per step)
         for c in range(2):
             rows.append((at(-1, i, c) - at(-2, i, c)) / vel_scale)
     for t in range(2, T_OBS):  # every acceleration (m per step^2)
-        for i in range(M):
+        for i in range(SLOTS):
             for c in range(2):
                 rows.append((at(t, i, c) - 2 * at(t - 1, i, c) + at(t - 2, i, c)) / acc_scale)
     return np.stack([r.reshape(-1) for r in rows])
@@ -42,19 +42,19 @@ class GeluStudent(nn.Module):
         super().__init__()
         P = torch.tensor(feature_map(pos_scale, vel_scale, acc_scale), dtype=torch.float32)
         self.register_buffer("P", P)
-        self.register_buffer("s", torch.tensor(list(s_acc) * (M - 1), dtype=torch.float32))
-        sizes = [P.shape[0], *hidden, 2 * (M - 1)]
+        self.register_buffer("s", torch.tensor(list(s_acc) * (SLOTS - 1), dtype=torch.float32))
+        sizes = [P.shape[0], *hidden, 2 * (SLOTS - 1)]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         nn.init.normal_(self.layers[-1].weight, std=1e-3)  # start near constant velocity (not 0: log ||W|| penalty)
         nn.init.zeros_(self.layers[-1].bias)
 
     def forward(self, window):
-        """Next xy (B, M, 2) in metres from window (B, T_obs, M, 2) in metres."""
+        """Next xy (B, SLOTS, 2) in metres from window (B, T_obs, SLOTS, 2) in metres."""
         b = window.shape[0]
         h = window.reshape(b, -1) @ self.P.T
         for layer in self.layers[:-1]:
             h = nn.functional.gelu(layer(h))
-        acc = (self.s * torch.tanh(self.layers[-1](h))).reshape(b, M - 1, 2)
+        acc = (self.s * torch.tanh(self.layers[-1](h))).reshape(b, SLOTS - 1, 2)
         cv = 2.0 * window[:, -1] - window[:, -2]
         return torch.cat([cv[:, :1], cv[:, 1:] + acc], dim=1)
 
@@ -79,11 +79,11 @@ def _gelu(a):
 
 
 def phi_jac64(weights, s, window, jac=True, cols=None):
-    """The student in float64 numpy: next (B, M, 2) in metres and, if jac, its exact Jacobian (B, M*2, T_obs*M*2).
+    """The student in float64 numpy: next (B, SLOTS, 2) in metres and, if jac, its exact Jacobian (B, SLOTS*2, T_obs*SLOTS*2).
 
     cols restricts the Jacobian to those input columns (cheaper when only the ego's inputs matter).
     """
-    cols = np.arange(T_OBS * M * 2) if cols is None else np.asarray(cols)
+    cols = np.arange(T_OBS * SLOTS * 2) if cols is None else np.asarray(cols)
     window = np.asarray(window, dtype=float)
     b = window.shape[0]
     h = window.reshape(b, -1)
@@ -96,12 +96,12 @@ def phi_jac64(weights, s, window, jac=True, cols=None):
     t = np.tanh(h @ W.T + bias)
     cv = 2.0 * window[:, -1] - window[:, -2]
     nxt = cv.copy()
-    nxt[:, 1:] += (s * t).reshape(b, M - 1, 2)
+    nxt[:, 1:] += (s * t).reshape(b, SLOTS - 1, 2)
     if not jac:
         return nxt
-    J_cv = np.zeros((M * 2, T_OBS * M * 2))
-    J_cv[:, -M * 2:] = 2.0 * np.eye(M * 2)
-    J_cv[:, -2 * M * 2:-M * 2] = -np.eye(M * 2)
+    J_cv = np.zeros((SLOTS * 2, T_OBS * SLOTS * 2))
+    J_cv[:, -SLOTS * 2:] = 2.0 * np.eye(SLOTS * 2)
+    J_cv[:, -2 * SLOTS * 2:-SLOTS * 2] = -np.eye(SLOTS * 2)
     J = np.repeat(J_cv[None, :, cols], b, axis=0)
     J[:, 2:] += (s * (1.0 - t * t))[:, :, None] * (W @ grad)
     return nxt, J

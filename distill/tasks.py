@@ -7,7 +7,7 @@ import lightning as L
 import torch
 from hydra.utils import instantiate
 
-from distill.student import M, T_OBS
+from core.rollout import SLOTS, T_OBS
 
 
 class _Task(L.LightningModule):
@@ -64,7 +64,7 @@ class StudentTask(_Task):
         """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty."""
         super().__init__(net, lr, weight_decay)
         # d others / d ego is small beside the others' own dynamics, yet it is the interaction the planner uses
-        columns = torch.ones(T_OBS, M, 2)
+        columns = torch.ones(T_OBS, SLOTS, 2)
         columns[:, 0] = ego_jac_weight
         self.register_buffer("columns", columns.reshape(-1), persistent=False)
 

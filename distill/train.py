@@ -14,8 +14,8 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
+from core.jobs import DEFAULT_TRACKING_URI, UserError, atomic_file, mlflow_run, writable
 from data import dataset
-from data.jobs import DEFAULT_TRACKING_URI, UserError, atomic_file, mlflow_run, writable
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
 from distill.perturb import box_windows, planner_like

@@ -15,7 +15,7 @@ from hydra.utils import instantiate  # noqa: E402
 from joblib import Parallel, delayed  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from data.jobs import mlflow_run  # noqa: E402
+from core.jobs import mlflow_run  # noqa: E402
 
 FIGURES = {"t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
            "step_ms": "MPC step wall time (ms, every step)", "admm_iters_mean": "ADMM iterations (episode mean)",
@@ -61,9 +61,9 @@ def episode(cfg_dict: dict, method: str, seed: int):
 def aggregate(rows, step_ms, iters) -> dict:
     """The run's metrics from the per-episode rows and the pooled per-step wall times (ms) and iterations."""
     done = [r for r in rows if not r["crash"]]
-    col = lambda k: np.array([r[k] for r in done], float)  # noqa: E731
+    col = lambda k: np.array([r[k] for r in done], float)
     merged = col("merged").astype(bool) if done else np.zeros(0, bool)
-    safe = lambda f, a: float(f(a)) if len(a) else float("nan")  # noqa: E731
+    safe = lambda f, a: float(f(a)) if len(a) else float("nan")
     return {"episodes": float(len(rows)), "crashes": float(len(rows) - len(done)), "nans": float(sum(r["nan"] for r in rows)),
             "merged": safe(np.mean, merged), "collision": safe(np.mean, col("collision") if done else []),
             "t_merge": safe(np.mean, col("t_merge")[merged] if done else []), "C_max": safe(np.nanmean, col("C_max") if done else []),

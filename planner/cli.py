@@ -11,7 +11,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from data.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from planner import batch, closed_loop, mpc, nnmpc, report
 from planner.gradients import make_source
 from planner.zstep import ZSTEPS
@@ -58,9 +58,9 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
 def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None):
     """One closed-loop episode with `method`, seeded by `seed` (default cfg.seed)."""
     if method == "admm":
-        step = lambda obs, warm: mpc.admm_step(s, obs, source, warm)  # noqa: E731
+        step = lambda obs, warm: mpc.admm_step(s, obs, source, warm)
     else:
-        step = lambda obs, warm: nnmpc.nnmpc_step(s, obs, source, warm, cfg.nnmpc.lengths, cfg.nnmpc.accels)  # noqa: E731
+        step = lambda obs, warm: nnmpc.nnmpc_step(s, obs, source, warm, cfg.nnmpc.lengths, cfg.nnmpc.accels)
     world = scenario.make_world(cfg.seed if seed is None else seed)
     return closed_loop.drive(world, step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world)
 

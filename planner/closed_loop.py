@@ -14,7 +14,7 @@ from data.world import World, overlap
 
 
 def backfill(z, T_obs, dt):
-    """History (T_obs, M, 2) ending at the current xy of states z (M, 4), earlier steps at constant velocity."""
+    """History (T_obs, SLOTS, 2) ending at the current xy of states z (M, 4), earlier steps at constant velocity."""
     heading = np.stack([np.cos(z[:, 2]), np.sin(z[:, 2])], -1)
     return np.stack([z[:, :2] - k * dt * z[:, 3:4] * heading for k in range(T_obs - 1, -1, -1)])
 

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from data.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, guarded, mlflow_run
+from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, guarded, mlflow_run
 
 OUTCOMES = ["merged", "collision", "t_merge", "C_max", "d_min_m", "step_ms_median", "step_ms_p95", "admm_iters_mean", "fallbacks"]
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", "grad_cosine", "grad_rel_err"]

@@ -1,12 +1,12 @@
 """Gradient sources behind one interface: rollout values of the others and their derivative w.r.t. the ego plan.
 
 Each source offers `values(history, ego_futures)` (B, T_p, M, 2) for a batch of ego plans and
-`jacobian(history, ego_future)` -> values (T_p, M, 2), d values / d ego xy (T_p, M, 2, T_p, 2), metres throughout.
+`jacobian(history, ego_future)` -> values (T_p, SLOTS, 2), d values / d ego xy (T_p, M, 2, T_p, 2), metres throughout.
 """
 import numpy as np
 
-from data.jobs import UserError
-from distill.rollout import rollout, rollout_jacobian
+from core.jobs import UserError
+from core.rollout import rollout, rollout_jacobian
 
 SOURCES = ("teacher", "student", "surrogate", "fd", "cv", "analytic")
 PREDICTORS = ("teacher", "student", "cv", "analytic")
@@ -19,13 +19,13 @@ class Source:
         self.name, self.predictor = name, predictor
 
     def values(self, history, ego_futures):
-        """Predicted xy (B, T_p, M, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, M, 2)."""
+        """Predicted xy (B, T_p, M, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
         ego_futures = np.asarray(ego_futures, dtype=float)
         batch = np.broadcast_to(np.asarray(history, dtype=float), (len(ego_futures),) + np.shape(history))
         return np.asarray(rollout(self.phi, batch, ego_futures), dtype=float)
 
     def phi(self, window):
-        """Next xy (B, M, 2) of windows (B, T_obs, M, 2), metres: the predictor's."""
+        """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), metres: the predictor's."""
         return self.predictor.phi(window)
 
 
@@ -35,7 +35,7 @@ class ExactLocal(Source):
     joint = True  # phi_jac gives the values too, at a small multiple of phi's cost
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2)."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2)."""
         return rollout_jacobian(self.predictor.phi_jac, history, ego_future)
 
 
@@ -48,12 +48,12 @@ class Surrogate(Source):
         self.joint = surrogate.fused  # one onnxruntime call gives values and J: see Safety.__call__
 
     def phi(self, window):
-        """Next xy (B, M, 2); a fused export runs the predictor's forward pass itself (onnxruntime: ~4x faster than
+        """Next xy (B, SLOTS, 2); a fused export runs the predictor's forward pass itself (onnxruntime: ~4x faster than
         torch eager at batch 1, equal to ~1e-6 m)."""
         return self.surrogate.phi_jac(window)[0] if self.surrogate.fused else self.predictor.phi(window)
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) with the surrogate's local Jacobians."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) with the surrogate's local Jacobians."""
         if self.surrogate.fused:  # values and J in one onnxruntime call per step
             return rollout_jacobian(self.surrogate.phi_jac, history, ego_future)
         return rollout_jacobian(lambda w: (self.predictor.phi(w), self.surrogate.jac(w)), history, ego_future)
@@ -71,7 +71,7 @@ class Autodiff(Source):
         self.dtype = params[0].dtype if params else torch.float64
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by autodiff."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by autodiff."""
         torch = self.torch
         hist = torch.as_tensor(np.asarray(history), dtype=self.dtype)[None]
 
@@ -92,7 +92,7 @@ class CentralDifferences(Source):
         self.h = h
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, M, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by central differences."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by central differences."""
         ego_future = np.asarray(ego_future, dtype=float)
         n = ego_future.size
         steps = np.eye(n).reshape(n, *ego_future.shape) * self.h

@@ -8,14 +8,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from core.rollout import b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
-from distill.rollout import b_i
 from planner import admm, cost, dynamics
 from planner.pygranso_zstep import PyGransoSettings
-from planner.zstep import ZSTEPS, SQPSettings
 from planner.qp import SolverFailure
 from planner.safety import Safety
+from planner.zstep import ZSTEPS, SQPSettings
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,7 @@ class Settings:
 
 
 class Observation(NamedTuple):
-    """What the planner sees: ego state z0 = [x, y, psi, v], last applied (delta, a), xy history (T_obs, M, 2)."""
+    """What the planner sees: ego state z0 = [x, y, psi, v], last applied (delta, a), xy history (T_obs, SLOTS, 2)."""
 
     z0: np.ndarray
     u_prev: np.ndarray
@@ -80,7 +80,7 @@ def simulate(z0, Delta, alpha, params):
 
 def shift(plan: admm.ADMMState):
     """The previous plan one step on: drop the first step, repeat the last (Z by its last state, mu by its last block)."""
-    roll = lambda a, k: np.concatenate([a[k:], a[-k:]])  # noqa: E731
+    roll = lambda a, k: np.concatenate([a[k:], a[-k:]])
     return admm.ADMMState(roll(plan.Delta, 1), roll(plan.alpha, 1), roll(plan.Z, 4), roll(plan.mu, 4), plan.zstate)
 
 
@@ -129,7 +129,7 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
     """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
     Z = simulate(obs.z0, Delta, alpha, s.params)
-    values = source.values(obs.history, np.reshape(Z, (s.T_p, 4))[None, :, :2])[0]
+    values = source.values(obs.history, ego_xy(Z, s.T_p)[None])[0]
     return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf)), Z
 
 

@@ -6,10 +6,10 @@ both ends, so its curvature is cubic in arc length to first order: a cubic spira
 """
 import numpy as np
 
+from core.rollout import b_i, ego_xy
 from data import bicycle
 from planner import admm
 from planner.mpc import Observation, Settings, StepResult, costs, fallback
-from distill.rollout import b_i
 
 
 def lateral_path(x, x0, y0, y1, L):
@@ -50,7 +50,7 @@ def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths=(8.0, 12.0, 
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0))):
         return fallback(s, obs, source, warm, "non-finite observation")
     cands = candidates(s, obs.z0, lengths, accels)
-    egos = np.stack([np.reshape(Z, (s.T_p, 4))[:, :2] for _, _, Z in cands])
+    egos = np.stack([ego_xy(Z, s.T_p) for _, _, Z in cands])
     values = source.values(obs.history, egos)
     b_min = np.array([b_i(v, s.R).min(initial=np.inf) for v in values])
     Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)

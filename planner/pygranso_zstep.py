@@ -16,11 +16,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from data.jobs import UserError
-from distill.rollout import rollout
+from core.jobs import UserError
+from core.rollout import b_i, ego_xy, rollout
 from planner.gradients import Autodiff
 from planner.qp import SolverFailure
-from distill.rollout import b_i
 
 TERMINATION = {  # PyGranso's soln.termination_code, in its own words (pygranso.pygranso docstring)
     0: "converged: stationarity <= opt_tol, feasible to tolerance",
@@ -128,11 +127,11 @@ def autodiff_b(safety, source: Autodiff):
 
     module = source.module
     weights = {k: v.detach() for k, v in module.named_parameters()}  # the network is fixed: no parameter gradients
-    phi = lambda w: torch.func.functional_call(module, weights, (w,))  # noqa: E731
+    phi = lambda w: torch.func.functional_call(module, weights, (w,))
     history = torch.as_tensor(safety.history, dtype=source.dtype)[None]
 
     def b(Z):
-        ego = Z.reshape(safety.T_p, 4)[None, :, :2].to(source.dtype)
+        ego = ego_xy(Z, safety.T_p)[None].to(source.dtype)
         return b_i(rollout(phi, history, ego)[0].double(), safety.R).reshape(-1)
 
     return b

@@ -1,7 +1,7 @@
 """Eq. (6)-(8) for one MPC step: b_i(Z) >= 0 against the gradient source's predictions, linearised with its Jacobian."""
 import numpy as np
 
-from distill.rollout import b_i, b_i_jacobian
+from core.rollout import b_i, b_i_jacobian, ego_xy
 
 
 class Safety:
@@ -13,7 +13,7 @@ class Safety:
 
     def ego_xy(self, Z):
         """The ego's planned xy (T_p, 2) from Z stacked as [x, y, psi, v] per step."""
-        return np.reshape(Z, (self.T_p, 4))[:, :2]
+        return ego_xy(Z, self.T_p)
 
     def __call__(self, Z):
         """b_i(Z) flattened (N*T_p,), m^2, from the predictor's values only."""

@@ -11,8 +11,8 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig
 
+from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from data import dataset
-from data.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
 from surrogate import evaluate, jacobians, models
@@ -90,7 +90,7 @@ def run(cfg: DictConfig) -> dict:
 
         test = dataset.load(cfg.dataset_dir, "test")["X"].astype(np.float64)
         history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
-        W = jacobians.planner_windows(source.phi, history, ego_future)  # (n * T_p, T_obs, M, 2), state-major
+        W = jacobians.planner_windows(source.phi, history, ego_future)  # (n * T_p, T_obs, SLOTS, 2), state-major
         J, J_hat = jacobians.autodiff(source, W), surrogate.jac(W)
         J_mean = np.broadcast_to(net.J_mean.double().numpy().reshape(J.shape[1:]), J.shape)
         J_cv = ConstantVelocity().phi_jac(W)[1]

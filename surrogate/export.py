@@ -2,11 +2,11 @@
 import onnx
 import torch
 
-from data.jobs import atomic_file
+from core.jobs import atomic_file
 
 
 def export(module, path, T_obs, M, source, opset=17):
-    """Write `module` (window (B, T_obs, M, 2) -> J, or (J, next) when fused) to `path` with metadata `source`."""
+    """Write `module` (window (B, T_obs, SLOTS, 2) -> J, or (J, next) when fused) to `path` with metadata `source`."""
     module = module.float().eval()
     window = torch.zeros(1, T_obs, M, 2)
     with torch.no_grad():

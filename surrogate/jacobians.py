@@ -1,11 +1,11 @@
 """Training targets: the source predictor's local Jacobian d phi(window) / d window on dataset and planner windows.
 
-J has shape (B, M*2, T_obs*M*2): rows are next xy flattened (M, 2), columns the window flattened (T_obs, M, 2),
-both C-order, metres per metre; the layout `distill.rollout.rollout_jacobian` composes.
+J has shape (B, SLOTS*2, T_obs*SLOTS*2): rows are next xy flattened (M, 2), columns the window flattened (T_obs, SLOTS, 2),
+both C-order, metres per metre; the layout `core.rollout.rollout_jacobian` composes.
 """
 import numpy as np
 
-from distill.rollout import rollout
+from core.rollout import rollout
 
 
 def chunks(a, size):
@@ -14,12 +14,12 @@ def chunks(a, size):
 
 
 def autodiff(predictor, windows, batch=1024):
-    """Exact J (B, M*2, T_obs*M*2) float64 from the predictor's own phi_jac (torch.func.jacrev for torch networks)."""
+    """Exact J (B, SLOTS*2, T_obs*SLOTS*2) float64 from the predictor's own phi_jac (torch.func.jacrev for torch networks)."""
     return np.concatenate([predictor.phi_jac(w)[1] for w in chunks(np.asarray(windows), batch)])
 
 
 def central(phi, windows, h=1e-2, batch=64):
-    """J (B, M*2, T_obs*M*2) float64 by central differences of a black-box numpy phi, step h (m) per input."""
+    """J (B, SLOTS*2, T_obs*SLOTS*2) float64 by central differences of a black-box numpy phi, step h (m) per input."""
     windows = np.asarray(windows, dtype=np.float64)
     shape = windows.shape[1:]
     n_in = int(np.prod(shape))
@@ -33,7 +33,7 @@ def central(phi, windows, h=1e-2, batch=64):
 
 
 def planner_windows(phi, history, ego_future):
-    """Every window the Remark 2 recursion visits (B*T_p, T_obs, M, 2) when the ego follows `ego_future` (B, T_p, 2)."""
+    """Every window the Remark 2 recursion visits (B*T_p, T_obs, SLOTS, 2) when the ego follows `ego_future` (B, T_p, 2)."""
     track = np.concatenate([history, rollout(phi, history, ego_future)], axis=1)  # (B, T_obs + T_p, M, 2)
     t_obs, t_p = history.shape[1], ego_future.shape[1]
     return np.stack([track[:, tau:tau + t_obs] for tau in range(t_p)], axis=1).reshape((-1,) + history.shape[1:])

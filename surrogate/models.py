@@ -3,12 +3,12 @@ from pathlib import Path
 
 import numpy as np
 
-from data.jobs import UserError
+from core.jobs import UserError
 from distill.export import onnx_session
 
 
 class Surrogate:
-    """onnxruntime session on surrogate.onnx; `.jac(window)` -> J (B, M*2, T_obs*M*2) m/m float64, `.source` its teacher."""
+    """onnxruntime session on surrogate.onnx; `.jac(window)` -> J (B, SLOTS*2, T_obs*SLOTS*2) m/m float64, `.source` its teacher."""
 
     def __init__(self, session, source, path):
         self.session, self.source, self.path = session, source, path
@@ -16,12 +16,12 @@ class Surrogate:
         self.fused = "next" in [o.name for o in session.get_outputs()]
 
     def jac(self, window):
-        """Learned local Jacobian J (B, M*2, T_obs*M*2), float64, of window (B, T_obs, M, 2) metres."""
+        """Learned local Jacobian J (B, SLOTS*2, T_obs*SLOTS*2), float64, of window (B, T_obs, SLOTS, 2) metres."""
         (J,) = self.session.run(["J"], {"window": np.asarray(window, dtype=np.float32)})
         return J.astype(np.float64)
 
     def phi_jac(self, window):
-        """(next xy (B, M, 2) m from the source predictor, J (B, M*2, T_obs*M*2)) in one call; fused models only."""
+        """(next xy (B, SLOTS, 2) m from the source predictor, J (B, SLOTS*2, T_obs*SLOTS*2)) in one call; fused models only."""
         if not self.fused:
             raise UserError(f"{self.path} was exported without the source's forward pass (surrogate fused=false)")
         J, nxt = self.session.run(["J", "next"], {"window": np.asarray(window, dtype=np.float32)})
@@ -29,7 +29,7 @@ class Surrogate:
 
 
 def load(models_dir="models", T_obs=8, M=5):
-    """The surrogate from <models_dir>/surrogate.onnx, checked against window (B, T_obs, M, 2) -> J (B, M*2, T_obs*M*2)."""
+    """The surrogate from <models_dir>/surrogate.onnx, checked against window (B, T_obs, SLOTS, 2) -> J (B, SLOTS*2, T_obs*SLOTS*2)."""
     path = Path(models_dir) / "surrogate.onnx"
     if not path.exists():
         raise UserError(f"{path} not found: run `surrogate`")

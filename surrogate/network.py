@@ -1,4 +1,4 @@
-"""The surrogate network: window (B, T_obs, M, 2) in metres -> the predictor's local Jacobian (B, M*2, T_obs*M*2).
+"""The surrogate network: window (B, T_obs, SLOTS, 2) in metres -> the predictor's local Jacobian (B, SLOTS*2, T_obs*SLOTS*2).
 
 Structure it exploits: a predictor that moves with the traffic (phi(window + c) = phi(window) + c along the road)
 has a Jacobian that depends on relative positions only, so the network reads the window relative to the ego's last
@@ -42,16 +42,16 @@ class JacobianNet(nn.Module):
         return torch.cat(parts, dim=1)
 
     def standardised(self, window):
-        """Network output: (J - J_mean) / J_std, flattened (B, M*2*T_obs*M*2)."""
+        """Network output: (J - J_mean) / J_std, flattened (B, SLOTS*2*T_obs*SLOTS*2)."""
         return self.net((self.features(window) - self.x_mean) / self.x_std)
 
     def forward(self, window):
-        """J (B, M*2, T_obs*M*2), m/m."""
+        """J (B, SLOTS*2, T_obs*SLOTS*2), m/m."""
         flat = self.J_mean + self.J_std * self.standardised(window)
         return flat.view(-1, self.M * 2, self.T_obs * self.M * 2)
 
     def fit_normalisation(self, windows, J, floor=1e-3):
-        """Set the feature and target statistics from training windows (B, T_obs, M, 2) and Jacobians (B, M*2, T_obs*M*2)."""
+        """Set the feature and target statistics from training windows (B, T_obs, SLOTS, 2) and Jacobians (B, SLOTS*2, T_obs*SLOTS*2)."""
         x = self.features(torch.as_tensor(np.asarray(windows), dtype=torch.float32))
         J = torch.as_tensor(np.asarray(J).reshape(len(J), -1), dtype=torch.float32)
         self.x_mean.copy_(x.mean(0))
@@ -68,5 +68,5 @@ class Fused(nn.Module):
         self.surrogate, self.source = surrogate, source
 
     def forward(self, window):
-        """(J (B, M*2, T_obs*M*2) m/m, next (B, M, 2) m)."""
+        """(J (B, SLOTS*2, T_obs*SLOTS*2) m/m, next (B, SLOTS, 2) m)."""
         return self.surrogate(window), self.source(window)

@@ -23,7 +23,7 @@ class PlanSampler:
         self.speed_factor, self.jitter, self.p_jitter = speed_factor, jitter, p_jitter
 
     def sample(self, history, rng):
-        """(history' (B, T_obs, M, 2) with the ego's track moved, ego_future (B, T_p, 2)) in metres."""
+        """(history' (B, T_obs, SLOTS, 2) with the ego's track moved, ego_future (B, T_p, 2)) in metres."""
         history = np.array(history, dtype=np.float64)
         B, t_obs = history.shape[:2]
         ego = history[:, :, 0]  # (B, T_obs, 2), a view: edits move the ego in `history`

@@ -16,7 +16,7 @@ def rel_err(J_hat, J):
 
 
 class JacobianData(L.LightningDataModule):
-    """Windows (n, T_obs, M, 2) m with their Jacobians (n, M*2, T_obs*M*2) for train and val, in float32 batches."""
+    """Windows (n, T_obs, SLOTS, 2) m with their Jacobians (n, SLOTS*2, T_obs*SLOTS*2) for train and val, in float32 batches."""
 
     def __init__(self, train, val, batch_size=256):
         super().__init__()

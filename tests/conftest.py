@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from data.jobs import CONF_DIR
+from core.jobs import CONF_DIR
 
 
 def compose_cfg(config_name: str, overrides=()):

@@ -10,8 +10,8 @@ import pytest
 from hydra.utils import instantiate
 
 from conftest import compose_cfg
+from core.jobs import UserError
 from data import dataset
-from data.jobs import UserError
 from data.plot import plot_episode
 from data.policies import ProbePolicy
 

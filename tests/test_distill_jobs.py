@@ -7,13 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import TINY_TEACHER_EPOCHS, compose_cfg
+from core.jobs import UserError
 from data import dataset
-from data.jobs import UserError
 from distill import models
 from distill.export import load_onnx
 from distill.train import run
-from conftest import TINY_TEACHER_EPOCHS, compose_cfg
-
 
 
 def job(tiny_dataset, models_dir, run_dir, *overrides):

@@ -4,8 +4,8 @@ import pytest
 import torch
 from torch.func import jacrev
 
+from core.jobs import UserError
 from data import dataset
-from data.jobs import UserError
 from distill import certificate
 from distill.models import StudentPredictor, TorchPredictor
 from distill.perturb import box_windows, planner_like

@@ -9,7 +9,7 @@ import pytest
 from hydra.utils import instantiate
 
 from conftest import compose_cfg
-from data.jobs import UserError, guarded, mlflow_run
+from core.jobs import UserError, guarded, mlflow_run
 from planner import cli, mpc, nnmpc
 from planner.closed_loop import backfill
 from planner.gradients import make_source

@@ -8,10 +8,11 @@ from hydra.utils import instantiate
 from scipy import sparse
 
 from conftest import compose_cfg
-from data.jobs import UserError
+from core.jobs import UserError
+from core.rollout import ego_xy
+from distill import models as distill_models
 from planner import admm, cli, mpc
 from planner.closed_loop import backfill
-from distill import models as distill_models
 from planner.gradients import Autodiff, CentralDifferences, make_source
 from planner.qp import QP
 from planner.safety import Safety
@@ -83,7 +84,7 @@ def test_safety_gradient_matches_central_differences(setup, gradients, predictor
     assert np.abs(Jfd).max() > 1.0  # the constraints do depend on the plan
     if gradients in ("analytic", "teacher", "student"):  # interactive: the others' reaction shows in d b_i / d Z
         direct = np.zeros_like(Jfd)
-        ego = np.reshape(Z, (s.T_p, 4))[:, :2]
+        ego = ego_xy(Z, s.T_p)
         vals = source.values(obs.history, ego[None])[0]
         for n in range(vals.shape[1] - 1):
             for t in range(s.T_p):

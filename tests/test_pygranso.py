@@ -8,7 +8,7 @@ import pytest
 from hydra.utils import instantiate
 
 from conftest import compose_cfg
-from data.jobs import UserError
+from core.jobs import UserError
 from planner import admm, cli, closed_loop, mpc
 from planner.closed_loop import backfill
 from planner.gradients import make_source
@@ -49,7 +49,7 @@ def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
     pg = PyGransoZStep(prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.pygranso._replace(maxit=100, opt_tol=1e-7))
     Z_sqp, _, _ = sqp(Z, mu, c_Z)
     Z_pg, _, info = pg(Z, mu, c_Z)
-    f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.rho, mu, c_Z))  # noqa: E731
+    f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.rho, mu, c_Z))
     b = safety(Z_pg)
     assert b.min() > -1e-6 and np.sum(np.abs(b) < 1e-4) >= 1  # feasible, a safety constraint active: not a trivial QP
     assert f(Z_pg) < f(Z) - 1e-2  # both moved well away from the start
@@ -66,7 +66,7 @@ def test_termination_reason_in_step_info_and_per_step_log(small):
     prob, (Z, mu, c_Z) = z_problem(s, obs, source)
     _, _, info = prob.zstep(Z, mu, c_Z, None)
     assert info["termination"] == 4 and info["termination_reason"] == "pygranso 4: max iterations (maxit)"
-    step = lambda o, warm: mpc.admm_step(s, o, source, warm)  # noqa: E731
+    step = lambda o, warm: mpc.admm_step(s, o, source, warm)
     ep = closed_loop.drive(scenario.make_world(0), step, source, scenario.x_ref, scenario.target_lane, max_steps=1)
     assert ep.rows[0]["zstep_stop"].startswith("pygranso ") and not ep.rows[0]["fallback"]
 

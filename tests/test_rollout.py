@@ -2,16 +2,16 @@
 import numpy as np
 import torch
 
+from core.rollout import SLOTS, T_OBS, rollout, rollout_jacobian
 from distill.predictors import ConstantVelocity
-from distill.rollout import rollout, rollout_jacobian
 
-T_OBS, M, T_P = 8, 5, 8
+T_P = 8
 
 
 def history(seed=0):
     rng = np.random.default_rng(seed)
-    start = np.array([[0.0, 0.0], [12.0, 4.0], [5.0, 4.0], [-2.0, 4.0], [-9.0, 4.0]]) + rng.normal(0, 0.3, (M, 2))
-    vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (M, 2))
+    start = np.array([[0.0, 0.0], [12.0, 4.0], [5.0, 4.0], [-2.0, 4.0], [-9.0, 4.0]]) + rng.normal(0, 0.3, (SLOTS, 2))
+    vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (SLOTS, 2))
     return start[None] + np.arange(T_OBS)[:, None, None] * vel[None]
 
 
@@ -21,11 +21,11 @@ class SmoothNet(torch.nn.Module):
     def __init__(self):
         super().__init__()
         torch.manual_seed(0)
-        self.net = torch.nn.Sequential(torch.nn.Linear(T_OBS * M * 2, 64), torch.nn.GELU(), torch.nn.Linear(64, M * 2))
+        self.net = torch.nn.Sequential(torch.nn.Linear(T_OBS * SLOTS * 2, 64), torch.nn.GELU(), torch.nn.Linear(64, SLOTS * 2))
 
     def forward(self, window):
         rel = window - window[:, -1:, :1]
-        return window[:, -1] + 0.3 * torch.tanh(self.net(rel.flatten(1))).view(-1, M, 2)
+        return window[:, -1] + 0.3 * torch.tanh(self.net(rel.flatten(1))).view(-1, SLOTS, 2)
 
 
 def test_rollout_fills_the_ego_slot_from_the_plan_and_shifts_the_window():
@@ -45,7 +45,7 @@ def test_composed_jacobian_equals_autograd_through_the_rollout():
     def phi_jac(window):
         w = torch.tensor(window)
         J = torch.func.jacrev(lambda x: net(x[None])[0])(w[0])
-        return net(w).detach().numpy(), J.reshape(1, M * 2, -1).detach().numpy()
+        return net(w).detach().numpy(), J.reshape(1, SLOTS * 2, -1).detach().numpy()
 
     values, grads = rollout_jacobian(phi_jac, h, ego)
     full = torch.func.jacrev(lambda e: rollout(net, torch.tensor(h)[None], e[None])[0])(torch.tensor(ego)).detach()

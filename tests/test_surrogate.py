@@ -4,15 +4,14 @@ import pytest
 import torch
 
 from conftest import compose_cfg
-from data.jobs import UserError
+from core.jobs import UserError
+from core.rollout import SLOTS, T_OBS
 from distill.models import StudentPredictor, TorchPredictor
 from distill.student import GeluStudent
 from surrogate import jacobians, models
 from surrogate.export import export
 from surrogate.network import Fused, JacobianNet
 from surrogate.states import PlanSampler
-
-T_OBS, M = 8, 5
 
 
 def smooth_student(seed=0):
@@ -32,8 +31,8 @@ def planning_windows(n=6, seed=0):
     """Windows the planner's recursion visits, from a synthetic platoon history with sampled ego plans."""
     rng = np.random.default_rng(seed)
     start = np.array([[0.0, 0.0], [12.0, 4.0], [5.0, 4.0], [-2.0, 4.0], [-9.0, 4.0]])
-    vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (n, 1, M, 2))
-    history = start[None, None] + rng.normal(0, 0.5, (n, 1, M, 2)) + np.arange(T_OBS)[None, :, None, None] * vel
+    vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (n, 1, SLOTS, 2))
+    history = start[None, None] + rng.normal(0, 0.5, (n, 1, SLOTS, 2)) + np.arange(T_OBS)[None, :, None, None] * vel
     history, ego_future = PlanSampler().sample(history, rng)
     return jacobians.planner_windows(StudentPredictor(smooth_student()).phi, history, ego_future)
 
@@ -42,20 +41,20 @@ def test_central_differences_agree_with_autodiff_on_a_smooth_student():
     W = planning_windows()
     J_auto = jacobians.autodiff(TorchPredictor("student", smooth_student()), W)
     J_central = jacobians.central(StudentPredictor(smooth_student()).phi, W, h=1e-4)  # float64 black box
-    reaction = J_auto.reshape(len(W), M, 2, T_OBS, M, 2)[:, 1:, :, :, 0]  # others' next xy w.r.t. the ego's track
+    reaction = J_auto.reshape(len(W), SLOTS, 2, T_OBS, SLOTS, 2)[:, 1:, :, :, 0]  # others' next xy w.r.t. the ego's track
     assert np.abs(reaction).max() > 1e-2  # the others do react to the ego, so the check has teeth
     np.testing.assert_allclose(J_central, J_auto, atol=1e-4 * np.abs(J_auto).max())
 
 
-def exported(tmp_path, module, M_=M):
+def exported(tmp_path, module, slots=SLOTS):
     """Export `module` to tmp_path/surrogate.onnx and return the folder."""
-    export(module, tmp_path / "surrogate.onnx", T_OBS, M_, source="student")
+    export(module, tmp_path / "surrogate.onnx", T_OBS, slots, source="student")
     return tmp_path
 
 
 def test_onnx_matches_torch_and_records_its_source(tmp_path):
     torch.manual_seed(1)
-    net = JacobianNet(T_OBS, M, hidden=32, depth=2).eval()
+    net = JacobianNet(T_OBS, SLOTS, hidden=32, depth=2).eval()
     W = planning_windows(2)
     net.fit_normalisation(W, jacobians.autodiff(TorchPredictor("student", smooth_student()), W))
     source = smooth_student()
@@ -81,9 +80,9 @@ def test_corrupt_file_is_refused_with_the_expected_shapes(tmp_path):
 
 
 def test_wrong_shape_model_is_refused(tmp_path):
-    wrong = JacobianNet(T_OBS, M - 1, hidden=8, depth=1)  # a surrogate for four cars, not five
+    wrong = JacobianNet(T_OBS, SLOTS - 1, hidden=8, depth=1)  # a surrogate for four cars, not five
     with pytest.raises(UserError, match=r"surrogate.onnx has inputs .*\[8, 4, 2\].*expected window \(B, 8, 5, 2\)"):
-        models.load(exported(tmp_path, wrong, M - 1))
+        models.load(exported(tmp_path, wrong, SLOTS - 1))
 
 
 def job_cfg(tmp_path, tiny_dataset, *overrides):

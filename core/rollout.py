@@ -1,9 +1,12 @@
 """The paper's Remark 2 recursion over T_p steps, its exact chain rule from local Jacobians, and eq. (8)'s b_i on it.
 
-A predictor maps a window (B, T_obs, M, 2) of past xy (metres, ego in slot 0) to the next xy (B, M, 2).
+A predictor maps a window (B, T_obs, SLOTS, 2) of past xy (metres, ego in slot 0) to the next xy (B, SLOTS, 2).
 Over the horizon the ego slot is filled from the candidate plan, the other slots from the predictor's own output.
 """
 import numpy as np
+
+T_OBS = 8  # observed steps in a predictor's window (paper: T_obs)
+SLOTS = 5  # vehicles in a window: the ego (slot 0) and N = 4 others
 
 
 def _xp(a):
@@ -16,7 +19,7 @@ def _xp(a):
 
 
 def rollout(phi, history, ego_future):
-    """Predicted xy of every slot (B, T_p, M, 2): history (B, T_obs, M, 2), ego_future (B, T_p, 2) = ego xy at 1..T_p."""
+    """Predicted xy of every slot (B, T_p, SLOTS, 2): history (B, T_obs, SLOTS, 2), ego_future (B, T_p, 2) = ego xy at 1..T_p."""
     xp = _xp(history)
     window, out = history, []
     for tau in range(ego_future.shape[1]):
@@ -28,9 +31,9 @@ def rollout(phi, history, ego_future):
 
 
 def rollout_jacobian(phi_jac, history, ego_future):
-    """Rollout values (T_p, M, 2) and their derivative w.r.t. the ego plan (T_p, M, 2, T_p, 2), for one planning state.
+    """Rollout values (T_p, SLOTS, 2) and their derivative w.r.t. the ego plan (T_p, SLOTS, 2, T_p, 2), for one planning state.
 
-    phi_jac(window (1, T_obs, M, 2)) -> (next (1, M, 2), J (1, M*2, T_obs*M*2)) supplies the local values and
+    phi_jac(window (1, T_obs, SLOTS, 2)) -> (next (1, SLOTS, 2), J (1, SLOTS*2, T_obs*SLOTS*2)) supplies the local values and
     Jacobians (autodiff, analytic, a surrogate, or differences); the chain rule through the window shift is exact.
     """
     history = np.asarray(history, dtype=float)
@@ -54,14 +57,19 @@ def rollout_jacobian(phi_jac, history, ego_future):
     return values, grads
 
 
+def ego_xy(Z, T_p):
+    """The ego's planned x, y (T_p, 2) in m from the stacked states Z (4T_p,) = [x, y, psi, v] per step."""
+    return Z.reshape(T_p, 4)[:, :2]
+
+
 def b_i(values, R):
-    """d_i (N, T_p) in m^2: squared centre distance ego-to-car minus R^2, R = r + r_i + eps (m); values (T_p, M, 2)."""
+    """d_i (N, T_p) in m^2: squared centre distance ego-to-car minus R^2, R = r + r_i + eps (m); values (T_p, SLOTS, 2)."""
     gap = values[:, :1] - values[:, 1:]
     return (gap**2).sum(-1).T - R**2  # numpy or torch alike: PyGranso back-propagates through it
 
 
 def b_i_jacobian(values, grads, R):
-    """b_i (N*T_p,) and d b_i / d Z (N*T_p, 4T_p), from rollout values (T_p, M, 2) and d values / d ego xy (T_p, M, 2, T_p, 2)."""
+    """b_i (N*T_p,) and d b_i / d Z (N*T_p, 4T_p), from rollout values (T_p, SLOTS, 2) and d values / d ego xy (T_p, SLOTS, 2, T_p, 2)."""
     T_p = len(values)
     gap = values[:, :1] - values[:, 1:]  # (T_p, N, 2)
     dgap = grads[:, :1] - grads[:, 1:]  # (T_p, N, 2, T_p, 2)
