@@ -1,4 +1,5 @@
 """`make-dataset`: build the interaction dataset, log it to MLflow (experiment `dataset`) with episode plots."""
+import logging
 import tempfile
 from pathlib import Path
 
@@ -10,6 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 from core.jobs import CONF_DIR, guarded, mlflow_run, writable
 from data import dataset
 from data.plot import plot_episode
+
+log = logging.getLogger(__name__)
 
 
 @guarded
@@ -29,9 +32,9 @@ def run(cfg: DictConfig) -> dict:
                 plot_episode(states, world.road, png, f"{scenario.name} episode {e} (seed {seed})", scenario.x_ref)
                 mlflow.log_artifact(str(png), "plots")
     s = meta["stats"]
-    print(f"dataset {root}: " + ", ".join(f"{k} {v['windows']}" for k, v in meta["splits"].items())
-          + f" windows; built in {meta['build_s']} s; {s['collisions']}/{s['episodes']} episodes collided; "
-          f"{s['nudges_opened_gap']}/{s['nudges']} nudges into a closed gap opened it")
+    log.info(f"dataset {root}: " + ", ".join(f"{k} {v['windows']}" for k, v in meta["splits"].items())
+             + f" windows; built in {meta['build_s']} s; {s['collisions']}/{s['episodes']} episodes collided; "
+             f"{s['nudges_opened_gap']}/{s['nudges']} nudges into a closed gap opened it")
     return meta
 
 

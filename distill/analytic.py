@@ -32,11 +32,11 @@ class Analytic:
         self.view, self.s_view, self.slowdown, self.c = view, s_view, slowdown, c
 
     def _weight(self, xp, dx, dy):
-        """Yield weight w (and the factors L, H, lateral distance rho) for ego-minus-car offsets dx, dy (m)."""
-        rho = xp.sqrt(dy**2 + self.c**2)  # smooth |dy|
-        L = _sigmoid(xp, (self.d_react - rho) / self.s_lat)
+        """Yield weight w (and the factors L, H, the smoothed lateral distance d_lat) for ego-minus-car offsets dx, dy (m)."""
+        d_lat = xp.sqrt(dy**2 + self.c**2)  # smooth |dy| (m)
+        L = _sigmoid(xp, (self.d_react - d_lat) / self.s_lat)
         Ha, Hv = _sigmoid(xp, dx / self.s_ahead), _sigmoid(xp, (self.view - dx) / self.s_view)
-        return L * Ha * Hv, L, Ha, Hv, rho
+        return L * Ha * Hv, L, Ha, Hv, d_lat
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2) from window (B, T_obs, SLOTS, 2), metres; numpy or torch."""
@@ -56,9 +56,9 @@ class Analytic:
         last, prev = window[:, -1], window[:, -2]
         disp = last - prev
         dx, dy = last[:, :1, 0] - last[..., 0], last[:, :1, 1] - last[..., 1]
-        w, L, Ha, Hv, rho = self._weight(np, dx, dy)
+        w, L, Ha, Hv, d_lat = self._weight(np, dx, dy)
         w[:, 0] = 0.0
-        dw_ddy = -L * (1 - L) / self.s_lat * dy / rho * Ha * Hv
+        dw_ddy = -L * (1 - L) / self.s_lat * dy / d_lat * Ha * Hv
         dw_ddx = L * (Ha * (1 - Ha) / self.s_ahead * Hv - Ha * Hv * (1 - Hv) / self.s_view)
         dw_ddy[:, 0] = dw_ddx[:, 0] = 0.0
         keep = 1.0 - self.slowdown * w

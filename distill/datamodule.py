@@ -10,28 +10,23 @@ from distill.perturb import planner_like
 
 
 class WindowData(L.LightningDataModule):
-    """Train/val windows from data/<name>/ (metres); with a teacher, relabelled by it and widened with planner-like copies."""
+    """Train/val (window, next) pairs from data/<name>/ in metres, as recorded."""
 
-    def __init__(self, dataset_dir, batch_size=256, teacher=None, perturbed_copies=1, perturb=None, projections=2, seed=0):
-        """teacher: a predictor with phi_vjp, or None for the data's own next positions; perturb: planner_like's ranges."""
+    def __init__(self, dataset_dir, batch_size):
+        """dataset_dir: a make-dataset folder; batch_size: training batch (validation uses 4x)."""
         super().__init__()
-        self.dataset_dir, self.batch_size, self.teacher, self.projections = dataset_dir, batch_size, teacher, projections
-        self.perturbed_copies, self.perturb, self.seed = perturbed_copies, dict(perturb or {}), seed
+        self.dataset_dir, self.batch_size = dataset_dir, batch_size
         self.splits = {}
 
     def setup(self, stage=None):
-        """Load (and for the student, label) both splits once."""
-        rng = np.random.default_rng(self.seed)
+        """Load (and label) both splits once."""
         for split in ("train", "val"):
-            if split in self.splits:
-                continue
-            a = dataset.load(self.dataset_dir, split)
-            if self.teacher is None:
-                self.splits[split] = TensorDataset(torch.from_numpy(a["X"]), torch.from_numpy(a["Y"]))
-                continue
-            X = np.concatenate([a["X"]] + [planner_like(a["X"], rng, **self.perturb) for _ in range(self.perturbed_copies)])
-            self.splits[split] = TensorDataset(*(torch.tensor(a, dtype=torch.float32)
-                                                 for a in (X, *label(self.teacher, X, rng, self.projections))))
+            if split not in self.splits:
+                self.splits[split] = self.tensors(dataset.load(self.dataset_dir, split))
+
+    def tensors(self, arrays):
+        """The split's training tensors: the recorded window and next positions."""
+        return TensorDataset(torch.from_numpy(arrays["X"]), torch.from_numpy(arrays["Y"]))
 
     def train_dataloader(self):
         """Shuffled training batches."""
@@ -40,6 +35,23 @@ class WindowData(L.LightningDataModule):
     def val_dataloader(self):
         """Validation batches, in order."""
         return DataLoader(self.splits["val"], batch_size=4 * self.batch_size)
+
+
+class DistillData(WindowData):
+    """Windows relabelled by a teacher (next positions and v^T J), widened with planner-like copies of every window."""
+
+    def __init__(self, dataset_dir, batch_size, teacher, perturbed_copies, perturb, projections, seed):
+        """teacher: a predictor with phi_vjp; perturb: planner_like's ranges; projections: cotangents v per window."""
+        super().__init__(dataset_dir, batch_size)
+        self.teacher, self.perturbed_copies, self.perturb, self.projections = teacher, perturbed_copies, dict(perturb), projections
+        self.rng = np.random.default_rng(seed)  # one stream for both splits, train first
+
+    def tensors(self, arrays):
+        """Dataset windows and their planner-like copies with the teacher's labels, float32."""
+        X = np.concatenate([arrays["X"]] + [planner_like(arrays["X"], self.rng, **self.perturb)
+                                            for _ in range(self.perturbed_copies)])
+        return TensorDataset(*(torch.tensor(a, dtype=torch.float32)
+                               for a in (X, *label(self.teacher, X, self.rng, self.projections))))
 
 
 def label(teacher, X, rng, projections, chunk=1024):

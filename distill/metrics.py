@@ -10,7 +10,7 @@ import numpy as np
 from core.rollout import rollout
 
 
-def rollout_cases(a: dict, t_p=8):
+def rollout_cases(a: dict, t_p: int):
     """history (n, T_obs, SLOTS, 2), ego future (n, T_p, 2), others' future (n, T_p, N, 2), yield flag (n,) from split arrays."""
     key = {(e, s): i for i, (e, s) in enumerate(zip(a["episode"], a["step"]))}
     starts, futures = [], []
@@ -29,7 +29,7 @@ def yield_windows(a: dict):
     return np.isin(a["episode"], episodes)
 
 
-def ade(predictor, a: dict, t_p=8, chunk=2048):
+def ade(predictor, a: dict, t_p: int, chunk=2048):
     """ade_1step_m, ade_rollout_m, fde_rollout_m on all windows and on the yield-episode subset (suffix _yield)."""
     X, Y = a["X"].astype(float), a["Y"].astype(float)
     pred = np.concatenate([predictor.phi(X[i : i + chunk]) for i in range(0, len(X), chunk)])

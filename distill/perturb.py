@@ -7,7 +7,7 @@ the predictor's own outputs, which we mimic by scaling their speeds. All quantit
 import numpy as np
 
 
-def planner_like(window, rng, lat_rate=0.4, dv=0.3, dx=2.0, other_speed=0.1):
+def planner_like(window, rng, lat_rate, dv, dx, other_speed):
     """Perturbed copies (B, T_obs, SLOTS, 2) of dataset windows; rates in m/step, offsets in m, other_speed a fraction."""
     w = np.array(window, dtype=float, copy=True)
     b, t_obs, m, _ = w.shape

@@ -12,7 +12,7 @@ from torch import nn
 from core.rollout import SLOTS, T_OBS
 
 
-def feature_map(pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+def feature_map(pos_scale, vel_scale, acc_scale):
     """P (78, 80): window flattened (T_obs, SLOTS, 2) in metres -> scaled relative positions, velocities, accelerations."""
     def at(t, i, c):
         """The window-shaped indicator of coordinate c of slot i at time t."""
@@ -37,7 +37,7 @@ def feature_map(pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
 class GeluStudent(nn.Module):
     """GELU MLP on P window with a bounded acceleration head s * tanh (s in metres per step^2, per x and y)."""
 
-    def __init__(self, hidden=(64, 64), s_acc=(0.5, 0.25), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+    def __init__(self, hidden, s_acc, pos_scale, vel_scale, acc_scale):
         """Hidden widths, head bound s_acc (m per step^2, x and y), feature scales (m, m/step, m/step^2)."""
         super().__init__()
         P = torch.tensor(feature_map(pos_scale, vel_scale, acc_scale), dtype=torch.float32)

@@ -13,7 +13,7 @@ from core.rollout import SLOTS, T_OBS
 class _Task(L.LightningModule):
     """Shared parts: the network from its config dict, AdamW with a cosine schedule over the run."""
 
-    def __init__(self, net: dict, lr=2e-3, weight_decay=1e-5):
+    def __init__(self, net: dict, lr: float, weight_decay: float):
         """net: the network's Hydra config dict; lr, weight_decay for AdamW."""
         super().__init__()
         self.save_hyperparameters(logger=False)  # the job already logs the whole config to MLflow
@@ -42,7 +42,7 @@ class _Task(L.LightningModule):
 class TeacherTask(_Task):
     """Huber loss of the other cars' next-position error in units of `scale_m` metres (collisions make heavy tails)."""
 
-    def __init__(self, net: dict, lr=2e-3, weight_decay=1e-5, scale_m=0.01):
+    def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float):
         """scale_m: the loss unit (m)."""
         super().__init__(net, lr, weight_decay)
 
@@ -59,8 +59,8 @@ class StudentTask(_Task):
     """Sobolev distillation: squared output error / scale_m^2 + jac_weight * squared error of the random projections
     v^T J (an unbiased estimate of the Jacobian error's Frobenius norm) + the spectral penalty."""
 
-    def __init__(self, net: dict, lr=3e-3, weight_decay=0.0, scale_m=0.01, jac_weight=1.0, ego_jac_weight=1.0,
-                 spectral_weight=0.0):
+    def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, jac_weight: float,
+                 ego_jac_weight: float, spectral_weight: float):
         """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty."""
         super().__init__(net, lr, weight_decay)
         # d others / d ego is small beside the others' own dynamics, yet it is the interaction the planner uses

@@ -41,7 +41,7 @@ class GRU(nn.Module):
 class SocialTeacher(nn.Module):
     """Social GAN's generator made deterministic: encoder GRU, pairwise Pool Net, MLP decoder (scales in m, m/step)."""
 
-    def __init__(self, hidden=64, pool=128, decoder=(256, 256), pos_scale=10.0, vel_scale=0.5, acc_scale=0.05):
+    def __init__(self, hidden, pool, decoder, pos_scale, vel_scale, acc_scale):
         """Widths of the GRU state, the Pool Net and the decoder; feature scales in m, m/step, m/step^2."""
         super().__init__()
         self.pos_scale, self.vel_scale, self.acc_scale = pos_scale, vel_scale, acc_scale

@@ -1,5 +1,6 @@
 """The distill job: train (teacher) or distil (student) with Lightning, evaluate, certify, export, log to MLflow."""
 import json
+import logging
 import os
 import shutil
 import time
@@ -21,19 +22,44 @@ from distill.export import export_onnx, load_onnx
 from distill.perturb import box_windows, planner_like
 
 ONNX_TOL_M = 1e-4
+log = logging.getLogger(__name__)
+
+
+class _NoTips(logging.Filter):
+    """Drops Lightning's advertising tips (hosted loggers, model registry); its other messages pass."""
+
+    def filter(self, record):
+        return not str(record.msg).startswith("\N{ELECTRIC LIGHT BULB} Tip:")
+
+
+def quiet_lightning_tips():
+    """Silence Lightning's tips on the loggers its rank-zero messages go through (idempotent)."""
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _NoTips) for f in logger.filters):
+            logger.addFilter(_NoTips())
+
+
+def make_trainer(cfg_trainer: DictConfig, **kwargs) -> L.Trainer:
+    """The Trainer of cfg_trainer, its callbacks given by name in the config (a null one is left out), as a list."""
+    quiet_lightning_tips()
+    spec = OmegaConf.to_container(cfg_trainer, resolve=True)
+    callbacks = [instantiate(c) for c in spec.pop("callbacks", {}).values() if c is not None]
+    return instantiate(spec, callbacks=callbacks, **kwargs)
 
 
 def fit(cfg: DictConfig, run_id, teacher):
     """Lightning fit of cfg.model's task; returns the trainer (its best checkpoint holds the chosen weights)."""
-    data = instantiate(cfg.model.data, dataset_dir=cfg.dataset_dir, teacher=teacher, _convert_="all")
+    labels = {} if teacher is None else {"teacher": teacher}  # the student's data is relabelled by its teacher
+    data = instantiate(cfg.model.data, dataset_dir=cfg.dataset_dir, **labels, _convert_="all")
     task = instantiate(cfg.model.task, _convert_="all")
     uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
     logger = MLFlowLogger(experiment_name="distill", tracking_uri=uri, run_id=run_id) if run_id else False
-    trainer = instantiate(cfg.trainer, logger=logger)
+    fitter = make_trainer(cfg.trainer, logger=logger)
     if cfg.ckpt_path and not Path(cfg.ckpt_path).exists():
         raise UserError(f"ckpt_path {cfg.ckpt_path} not found")
-    trainer.fit(task, datamodule=data, ckpt_path=cfg.ckpt_path)
-    return trainer
+    fitter.fit(task, datamodule=data, ckpt_path=cfg.ckpt_path)
+    return fitter
 
 
 def certify(cfg_cert, predictor, windows, rng):
@@ -45,7 +71,7 @@ def certify(cfg_cert, predictor, windows, rng):
     c["rho_used"] = float(cfg_cert.rho_used)
     data = windows - windows[:, -1:, :1]  # ego-centred frame; gradients do not depend on it
     n_pert = cfg_cert.samples // 3  # drawn with replacement, each with its own perturbation
-    pert = planner_like(data[rng.integers(0, len(data), n_pert)], rng, lat_rate=0.8, dv=0.6, dx=4.0, other_speed=0.3)
+    pert = planner_like(data[rng.integers(0, len(data), n_pert)], rng, **cfg_cert.perturb)
     boxed = box_windows(max(0, cfg_cert.samples - len(data) - n_pert), rng, box)
     sample = np.concatenate([data, pert, boxed])
     cols = certificate.ego_columns()
@@ -74,14 +100,15 @@ def run(cfg: DictConfig):
         predictor = models.StudentPredictor(models.read_checkpoint(best)) if name == "student" else \
             models.TorchPredictor(name, models.read_checkpoint(best))
         test = dataset.load(cfg.dataset_dir, cfg.eval_split)
-        table = {name: metrics.ade(predictor, test), "cv": metrics.ade(models.load("cv"), test)}
+        t_p = cfg.paper.T_p  # rollout horizon of the ade_rollout / fde_rollout figures
+        table = {name: metrics.ade(predictor, test, t_p), "cv": metrics.ade(models.load("cv"), test, t_p)}
         results.update(table[name])
         results.update({f"cv_{k}": v for k, v in table["cv"].items()})
         results["params"] = sum(p.numel() for p in predictor.module.parameters())
         results["forward_us"] = metrics.forward_us(predictor, test["X"])
         cert = None
         if name == "student":
-            table["teacher"] = metrics.ade(teacher, test)
+            table["teacher"] = metrics.ade(teacher, test, t_p)
             results.update({f"teacher_{k}": v for k, v in table["teacher"].items()})
             results.update(metrics.jac_rel_err(predictor, teacher, test["X"][:512].astype(float)))
             t1 = time.perf_counter()
@@ -107,7 +134,7 @@ def run(cfg: DictConfig):
             atomic_file(models_dir / "certificate.json", lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
             mlflow.log_artifact(str(models_dir / "certificate.json"))
         mlflow.log_metrics({k: float(v) for k, v in results.items()})
-    print(summary(name, table, results, cert))
+    log.info(summary(name, table, results, cert))
     return results
 
 

@@ -1,8 +1,10 @@
 """`surrogate`: Jacobian data from the source predictor, train the gradient network, export ONNX, log to MLflow."""
 import copy
+import logging
 from pathlib import Path
 
 import hydra
+import lightning as L
 import mlflow
 import numpy as np
 import torch
@@ -15,12 +17,14 @@ from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from data import dataset
 from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
+from distill.train import quiet_lightning_tips
 from surrogate import evaluate, jacobians, models
 from surrogate.export import export
 from surrogate.network import Fused
 from surrogate.training import JacobianData, rel_err
 
 METHODS = ("autodiff", "central")
+log = logging.getLogger(__name__)
 
 
 def instantiate_user(node, **kwargs):
@@ -67,6 +71,7 @@ def run(cfg: DictConfig) -> dict:
     if cfg.method not in METHODS:
         raise UserError(f"method={cfg.method}: choose one of {', '.join(METHODS)}")
     writable(cfg.models_dir, "models_dir")
+    L.seed_everything(cfg.seed, workers=True, verbose=False)  # the network's initialisation and batch order
     rng = np.random.default_rng(cfg.seed)
     source = instantiate_user(cfg.predictor)
     if cfg.fused and not hasattr(source, "module"):
@@ -79,6 +84,7 @@ def run(cfg: DictConfig) -> dict:
         net = instantiate(cfg.network, T_obs=T_obs, M=M)
         net.fit_normalisation(*train)
         logger = MLFlowLogger(experiment_name="surrogate", tracking_uri=mlflow.get_tracking_uri(), run_id=run.info.run_id)
+        quiet_lightning_tips()
         trainer = instantiate(cfg.trainer, logger=logger, default_root_dir=cfg.out_dir)
         trainer.fit(instantiate(cfg.module, net=net), datamodule=JacobianData(train, val, cfg.data.batch_size))
 
@@ -99,7 +105,7 @@ def run(cfg: DictConfig) -> dict:
         metrics = {"jac_rel_err": rel_err(J_hat, J), "jac_rel_err_mean": rel_err(J_mean, J),
                    "jac_rel_err_cv": rel_err(J_cv, J), "onnx_max_abs_err": float(np.abs(J_hat - with_torch).max())}
 
-        R = cfg.safety.r + cfg.safety.r_i + cfg.safety.eps
+        R = cfg.paper.safety.r + cfg.paper.safety.r_i + cfg.paper.safety.eps
         n = len(history)
         scores = evaluate.gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J),
                                             {"": per_state(n, J_hat), "_mean": per_state(n, J_mean), "_cv": per_state(n, J_cv)},
@@ -116,12 +122,12 @@ def run(cfg: DictConfig) -> dict:
         mlflow.log_metrics(metrics)
         mlflow.log_artifact(str(path))
 
-    print(f"surrogate of {cfg.source} ({cfg.method}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
-          f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
-          f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "
-          f"others' reaction d p_i/dZ rel err {metrics['react_rel_err']:.3f} (mean-J {metrics['react_rel_err_mean']:.3f}); "
-          f"local J rel err {metrics['jac_rel_err']:.4f} (mean-J {metrics['jac_rel_err_mean']:.4f}); "
-          f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff")
+    log.info(f"surrogate of {cfg.source} ({cfg.method}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
+             f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
+             f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "
+             f"others' reaction d p_i/dZ rel err {metrics['react_rel_err']:.3f} (mean-J {metrics['react_rel_err_mean']:.3f}); "
+             f"local J rel err {metrics['jac_rel_err']:.4f} (mean-J {metrics['jac_rel_err_mean']:.4f}); "
+             f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff")
     return metrics
 
 

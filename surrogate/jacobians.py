@@ -18,7 +18,7 @@ def autodiff(predictor, windows, batch=1024):
     return np.concatenate([predictor.phi_jac(w)[1] for w in chunks(np.asarray(windows), batch)])
 
 
-def central(phi, windows, h=1e-2, batch=64):
+def central(phi, windows, h, batch=64):
     """J (B, SLOTS*2, T_obs*SLOTS*2) float64 by central differences of a black-box numpy phi, step h (m) per input."""
     windows = np.asarray(windows, dtype=np.float64)
     shape = windows.shape[1:]

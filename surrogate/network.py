@@ -16,7 +16,8 @@ AXES = {"x": 0, "y": 1}
 class JacobianNet(nn.Module):
     """MLP on relative window features -> J = mean_J + std_J * net(features); lengths in m, J in m/m."""
 
-    def __init__(self, T_obs=8, M=5, hidden=256, depth=3, absolute="y"):
+    def __init__(self, T_obs, M, hidden, depth, absolute):
+        """Window of T_obs steps of M slots; `depth` SiLU layers of `hidden` units; absolute: "", "y" or "xy" of the ego."""
         super().__init__()
         self.T_obs, self.M, self.absolute = T_obs, M, [AXES[a] for a in absolute]
         n_in, n_out = (1 + (T_obs - 1) + (T_obs - 2)) * M * 2 + len(self.absolute), M * 2 * T_obs * M * 2

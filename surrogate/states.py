@@ -16,8 +16,10 @@ def smoothstep(u):
 class PlanSampler:
     """Random planning states around dataset histories; lengths in m, speeds as factors of the ego's last speed."""
 
-    def __init__(self, T_p=8, shift_x=3.0, shift_y=1.0, p_shift=0.5, p_mid_lane_change=0.3, lane_width=4.0,
-                 plan_y=4.0, speed_factor=(0.6, 1.4), jitter=0.15, p_jitter=0.3):
+    def __init__(self, T_p, shift_x, shift_y, p_shift, p_mid_lane_change, lane_width, plan_y, speed_factor, jitter,
+                 p_jitter):
+        """Horizon T_p (steps); ego shifts (m, std) with probability p_shift; mid-lane-change histories with probability
+        p_mid_lane_change; plans reach up to plan_y (m) across at speed_factor [low, high]; zig-zag jitter (m, std)."""
         self.T_p, self.shift_x, self.shift_y, self.p_shift = T_p, shift_x, shift_y, p_shift
         self.p_mid_lane_change, self.lane_width, self.plan_y = p_mid_lane_change, lane_width, plan_y
         self.speed_factor, self.jitter, self.p_jitter = speed_factor, jitter, p_jitter

@@ -18,7 +18,7 @@ def rel_err(J_hat, J):
 class JacobianData(L.LightningDataModule):
     """Windows (n, T_obs, SLOTS, 2) m with their Jacobians (n, SLOTS*2, T_obs*SLOTS*2) for train and val, in float32 batches."""
 
-    def __init__(self, train, val, batch_size=256):
+    def __init__(self, train, val, batch_size):
         super().__init__()
         self.train_set = TensorDataset(*(torch.as_tensor(a, dtype=torch.float32) for a in train))
         self.val_set = TensorDataset(*(torch.as_tensor(a, dtype=torch.float32) for a in val))
@@ -36,7 +36,7 @@ class JacobianData(L.LightningDataModule):
 class SurrogateModule(L.LightningModule):
     """Fits JacobianNet by mean squared error of the standardised Jacobian; logs train/val loss and val_jac_rel_err."""
 
-    def __init__(self, net: JacobianNet, lr=2e-3, weight_decay=1e-5):
+    def __init__(self, net: JacobianNet, lr, weight_decay):
         super().__init__()
         self.net, self.lr, self.weight_decay = net, lr, weight_decay
 

@@ -2,22 +2,21 @@
 import numpy as np
 import pytest
 import torch
+from hydra.utils import instantiate
 
 from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import SLOTS, T_OBS
 from distill.models import StudentPredictor, TorchPredictor
-from distill.student import GeluStudent
 from surrogate import jacobians, models
 from surrogate.export import export
-from surrogate.network import Fused, JacobianNet
-from surrogate.states import PlanSampler
+from surrogate.network import Fused
 
 
 def smooth_student(seed=0):
     """A student-shaped GELU network with random (not trained) weights whose others react to the ego."""
     torch.manual_seed(seed)
-    net = GeluStudent(hidden=(16, 16))
+    net = instantiate(compose_cfg("distill", ["model=student"]).model.net, hidden=[16, 16])
     torch.nn.init.normal_(net.layers[-1].weight, 0.0, 0.5)
     return net.eval()
 
@@ -33,7 +32,7 @@ def planning_windows(n=6, seed=0):
     start = np.array([[0.0, 0.0], [12.0, 4.0], [5.0, 4.0], [-2.0, 4.0], [-9.0, 4.0]])
     vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (n, 1, SLOTS, 2))
     history = start[None, None] + rng.normal(0, 0.5, (n, 1, SLOTS, 2)) + np.arange(T_OBS)[None, :, None, None] * vel
-    history, ego_future = PlanSampler().sample(history, rng)
+    history, ego_future = instantiate(compose_cfg("surrogate").states).sample(history, rng)
     return jacobians.planner_windows(StudentPredictor(smooth_student()).phi, history, ego_future)
 
 
@@ -46,6 +45,11 @@ def test_central_differences_agree_with_autodiff_on_a_smooth_student():
     np.testing.assert_allclose(J_central, J_auto, atol=1e-4 * np.abs(J_auto).max())
 
 
+def jacobian_net(slots=SLOTS, **overrides):
+    """The surrogate network as the job configures it, with test-sized overrides."""
+    return instantiate(compose_cfg("surrogate").network, T_obs=T_OBS, M=slots, **overrides)
+
+
 def exported(tmp_path, module, slots=SLOTS):
     """Export `module` to tmp_path/surrogate.onnx and return the folder."""
     export(module, tmp_path / "surrogate.onnx", T_OBS, slots, source="student")
@@ -54,7 +58,7 @@ def exported(tmp_path, module, slots=SLOTS):
 
 def test_onnx_matches_torch_and_records_its_source(tmp_path):
     torch.manual_seed(1)
-    net = JacobianNet(T_OBS, SLOTS, hidden=32, depth=2).eval()
+    net = jacobian_net(hidden=32, depth=2).eval()
     W = planning_windows(2)
     net.fit_normalisation(W, jacobians.autodiff(TorchPredictor("student", smooth_student()), W))
     source = smooth_student()
@@ -80,7 +84,7 @@ def test_corrupt_file_is_refused_with_the_expected_shapes(tmp_path):
 
 
 def test_wrong_shape_model_is_refused(tmp_path):
-    wrong = JacobianNet(T_OBS, SLOTS - 1, hidden=8, depth=1)  # a surrogate for four cars, not five
+    wrong = jacobian_net(SLOTS - 1, hidden=8, depth=1)  # a surrogate for four cars, not five
     with pytest.raises(UserError, match=r"surrogate.onnx has inputs .*\[8, 4, 2\].*expected window \(B, 8, 5, 2\)"):
         models.load(exported(tmp_path, wrong, SLOTS - 1))
 
