@@ -3,18 +3,18 @@ ADMM runs of both scenarios, saved once to an .npz so every benchmark (and every
 
     from bench.states import planning_states, settings
     for st in planning_states():                       # collected on first use, then loaded from the .npz
-        result = mpc.admm_step(settings(st.scenario), st.obs, source, st.warm)
+        result = mpc.mpc_step(settings(st.scenario), st.obs, source, st.warm)
 """
 from functools import lru_cache
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from hydra import compose, initialize_config_dir
-from hydra.utils import instantiate
 
-from core.jobs import CONF_DIR, UserError, atomic_file
-from planner import admm, mpc
+from core.jobs import UserError, atomic_file
+from planner import admm, closed_loop, mpc
+from planner.setup import build, planner_config, setup
+from planner.setup import settings as mpc_settings
 
 DEFAULT_PATH = Path("outputs/bench/states.npz")
 SCENARIOS = ("two_lane", "three_lane")
@@ -28,35 +28,24 @@ class PlanningState(NamedTuple):
     warm: admm.ADMMState | None
 
 
-def config(scenario: str, overrides=()):
-    """The composed `planner` config for `scenario` (Hydra overrides as in the console script)."""
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("planner", overrides=[f"scenario={scenario}", *overrides])
-
-
 @lru_cache(maxsize=None)
 def settings(scenario: str, overrides: tuple = ()) -> mpc.Settings:
-    """The MPC settings the `planner` command would use on `scenario` (cached: composing a config takes ~50 ms)."""
-    from planner.cli import settings as from_cfg
-
-    cfg = config(scenario, overrides)
-    return from_cfg(cfg, instantiate(cfg.scenario, _convert_="all"))
+    """The MPC settings the `planner` command would use on `scenario` with these overrides (cached: composing and building
+    a config takes ~50 ms)."""
+    cfg = planner_config(scenario, overrides)
+    return mpc_settings(cfg, build(cfg.scenario))
 
 
 def collect(scenarios=SCENARIOS, per_scenario=15, gradients="analytic", seed=0, overrides=()) -> list[PlanningState]:
     """Drive each scenario closed loop with ADMM and `gradients`, keep `per_scenario` steps evenly spread over the run."""
-    from planner.closed_loop import drive
-    from planner.gradients import make_source
-
     out = []
     for name in scenarios:
-        cfg = config(name, [f"gradients={gradients}", f"seed={seed}", *overrides])
-        scenario = instantiate(cfg.scenario, _convert_="all")
-        source = make_source(cfg.gradients, cfg.predictor, cfg.models_dir, cfg.fd_step, dict(cfg.analytic))
-        s, seen = settings(name, tuple(overrides)), []
-        step = lambda obs, warm: seen.append((obs, warm)) or mpc.admm_step(s, obs, source, warm)
-        drive(scenario.make_world(cfg.seed), step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs,
-              cfg.max_steps, cfg.world)
+        cfg = planner_config(name, [f"gradients={gradients}", f"seed={seed}", "method=admm", *overrides])
+        scenario, source, s = setup(cfg)
+        seen = []
+        step = lambda obs, warm: seen.append((obs, warm)) or mpc.mpc_step(s, obs, source, warm)
+        closed_loop.drive(scenario.make_world(cfg.seed), step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs,
+                          cfg.max_steps, cfg.world)
         keep = np.unique(np.linspace(0, len(seen) - 1, min(per_scenario, len(seen))).round().astype(int))
         out += [PlanningState(name, *seen[k]) for k in keep]
     return out

@@ -1,28 +1,25 @@
 """`make bench`: wall time (ms) of one ADMM-NNMPC step per gradient source on the saved planning states, single-threaded,
 beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls), logged to MLflow (`bench`).
 
-    python -m bench.step_time [--per-scenario 15] [--repeats 1] [--models-dir models]
+    python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
 Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair.
 """
-import os
+import logging
+import time
 
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ[_var] = "1"  # before numpy and torch start their thread pools
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+from threadpoolctl import threadpool_limits
 
-import argparse  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+from bench.states import planning_states, settings
+from core.jobs import CONF_DIR, UserError, guarded, mlflow_run
+from core.rollout import ego_xy
+from planner import mpc
+from planner.setup import make
 
-import numpy as np  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
-
-from bench.states import DEFAULT_PATH, planning_states, settings  # noqa: E402
-from core.jobs import UserError, guarded, mlflow_run  # noqa: E402
-from core.rollout import ego_xy  # noqa: E402
-from planner import mpc  # noqa: E402
-from planner.gradients import make_source  # noqa: E402
-
+log = logging.getLogger(__name__)
 RATIOS = (("teacher", "surrogate"), ("teacher", "student"), ("surrogate", "floor"), ("student", "floor"))
 
 
@@ -54,14 +51,18 @@ def freeze(source, s: mpc.Settings, state) -> Frozen:
     return Frozen(*source.jacobian(state.obs.history, ego), ego)
 
 
-def log_bench(run_name, settings: dict, srcs: dict, n_states: int, metrics: dict):
-    """One MLflow run in experiment `bench`: the settings (one thread), each source's predictor, the metrics."""
+def log_bench(run_name, cfg: DictConfig, srcs: dict, n_states: int, metrics: dict):
+    """One MLflow run in experiment `bench`: the bench config, each source's predictor, the metrics."""
     import mlflow
 
     predictors = {f"predictor_{n}": s.predictor.name for n, s in srcs.items()}
-    cfg = OmegaConf.create({**settings, "threads": 1})
     with mlflow_run("bench", cfg, run_name=run_name, n_states=n_states, **predictors):
         mlflow.log_metrics(metrics)
+
+
+def source(gradients, models_dir, *overrides):
+    """The gradient source the `planner` command builds for `gradients=...` (conf/gradients/) over models_dir."""
+    return make("two_lane", [f"gradients={gradients}", f"models_dir={models_dir}", *overrides])[1]
 
 
 def sources(models_dir) -> dict:
@@ -70,11 +71,11 @@ def sources(models_dir) -> dict:
     out = {}
     for name in ("teacher", "student", "surrogate", "fd", "analytic"):
         try:
-            out[name] = make_source(name, "auto", models_dir)  # onnxruntime sessions run on one thread already
+            out[name] = source(name, models_dir)  # onnxruntime sessions run on one thread already
         except UserError as e:
             if name in ("teacher", "fd"):  # the same maths over the built-in predictor keeps the ratios meaningful
-                out[name] = make_source(name, "analytic", models_dir)
-            print(f"{name}: {e}" + ("; using the analytic predictor" if name in out else "; skipped"))
+                out[name] = source(name, models_dir, "predictor=analytic")
+            log.info(f"{name}: {e}" + ("; using the analytic predictor" if name in out else "; skipped"))
     if "analytic" in out and out["teacher"].predictor.name != "analytic":
         del out["analytic"]  # only a stand-in for missing models
     return out
@@ -93,7 +94,7 @@ def time_steps(srcs: dict, states, repeats: int) -> dict:
             best = np.inf
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                result = mpc.admm_step(s, state.obs, src, state.warm)
+                result = mpc.mpc_step(s, state.obs, src, state.warm)
                 best = min(best, 1e3 * (time.perf_counter() - t0))
             ms[name].append(best)
             iters[name].append(result.iters)
@@ -113,42 +114,49 @@ def summary(timings: dict) -> dict:
     return out
 
 
-@guarded
-def run(per_scenario=15, repeats=1, models_dir="models", states_path=DEFAULT_PATH) -> dict:
-    """Collect or load the states, time every source and the floor, print the table and the ratios, log to MLflow."""
-    import torch
-
-    torch.set_num_threads(1)
-    states = planning_states(states_path, per_scenario=per_scenario)
-    srcs = sources(models_dir)
-    for name, src in srcs.items():  # warm-up: first calls pay for imports, allocations and onnxruntime's graph setup
-        mpc.admm_step(settings(states[0].scenario), states[0].obs, src, states[0].warm)
-    timings = time_steps(srcs, states, repeats)
-    metrics = summary(timings)
-    print(f"{len(states)} planning states ({', '.join(sorted({st.scenario for st in states}))}), one thread, "
-          f"fastest of {repeats}")
-    print(f"{'source':>10} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}")
+def table(timings: dict, srcs: dict, metrics: dict, repeats: int, states) -> str:
+    """The printed result: one line per source (and the floor), then the ratios."""
+    lines = [f"{len(states)} planning states ({', '.join(sorted({st.scenario for st in states}))}), one thread, "
+             f"fastest of {repeats}",
+             f"{'source':>10} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
         pred = srcs[name].predictor.name if name in srcs else "frozen"
-        print(f"{name:>10} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
-              f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
+        lines.append(f"{name:>10} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
+                     f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
     for a, b in RATIOS:
         key = f"ratio_{a}_{b}"
-        print(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
-    log_bench("step_time", {"per_scenario": per_scenario, "repeats": repeats, "models_dir": models_dir,
-                            "states": str(states_path)}, srcs, len(states), metrics)
+        lines.append(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
+    return "\n".join(lines)
+
+
+def single_threaded(cfg: DictConfig):
+    """threadpoolctl's limit on the BLAS/OpenMP pools and torch's own, both to cfg.threads, for the block."""
+    import torch
+
+    torch.set_num_threads(cfg.threads)
+    return threadpool_limits(limits=cfg.threads)
+
+
+@guarded
+def run(cfg: DictConfig) -> dict:
+    """Collect or load the states, time every source and the floor, log the table and the ratios and to MLflow."""
+    with single_threaded(cfg):
+        states = planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario, gradients=cfg.states.gradients,
+                                 seed=cfg.states.seed)
+        srcs = sources(cfg.models_dir)
+        for src in srcs.values():  # warm-up: first calls pay for imports, allocations and onnxruntime's graph setup
+            mpc.mpc_step(settings(states[0].scenario), states[0].obs, src, states[0].warm)
+        timings = time_steps(srcs, states, cfg.step_time.repeats)
+    metrics = summary(timings)
+    log.info("\n%s", table(timings, srcs, metrics, cfg.step_time.repeats, states))
+    log_bench("step_time", cfg, srcs, len(states), metrics)
     return metrics
 
 
-def main():
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="bench")
+def main(cfg: DictConfig) -> None:
     """Console entry point (`python -m bench.step_time`)."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--per-scenario", type=int, default=15, help="planning states kept per scenario when collecting")
-    p.add_argument("--repeats", type=int, default=1, help="time each step this many times, keep the fastest")
-    p.add_argument("--models-dir", default="models")
-    p.add_argument("--states", type=Path, default=DEFAULT_PATH, help="saved states (.npz); collected first if missing")
-    a = p.parse_args()
-    run(a.per_scenario, a.repeats, a.models_dir, a.states)
+    run(cfg)
 
 
 if __name__ == "__main__":

@@ -2,28 +2,25 @@
 wall time (ms) of one MPC step, its cost J and its plan's worst safety violation (m^2), per gradient source, on the
 saved planning states of the step-time benchmark, single-threaded; ratios pygranso/sqp printed and logged (`bench`).
 
-    python -m bench.zstep_compare [--per-scenario 4] [--models-dir models]
+    python -m bench.zstep_compare [zstep_compare.per_scenario=4] [zstep_compare.sources=[student]] [models_dir=models]
 
-PyGranso takes seconds per MPC step, so by default an evenly spread subset of the saved states is used.
+PyGranso takes seconds per MPC step, so by default an evenly spread subset of the saved states is used (conf/bench.yaml).
 """
-import os
+import logging
+import time
 
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ[_var] = "1"  # before numpy and torch start their thread pools
+import hydra
+import numpy as np
+from omegaconf import DictConfig
 
-import argparse  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+from bench.states import planning_states, settings
+from bench.step_time import log_bench, single_threaded, sources
+from core.jobs import CONF_DIR, guarded
+from core.rollout import b_i, ego_xy
+from planner import mpc
+from planner.pygranso_zstep import import_pygranso
 
-import numpy as np  # noqa: E402
-
-from bench.states import DEFAULT_PATH, planning_states, settings  # noqa: E402
-from bench.step_time import log_bench, sources  # noqa: E402
-from core.jobs import guarded  # noqa: E402
-from core.rollout import b_i, ego_xy  # noqa: E402
-from planner import mpc  # noqa: E402
-from planner.pygranso_zstep import import_pygranso  # noqa: E402
-
+log = logging.getLogger(__name__)
 ZSTEPS = ("sqp", "pygranso")
 
 
@@ -49,7 +46,7 @@ def violation(s: mpc.Settings, state, source, plan):
 def step(s: mpc.Settings, state, source):
     """One MPC step: (ms, J, violation m^2, fell back, the Z-step's last stop reason)."""
     t0 = time.perf_counter()
-    result = mpc.admm_step(s, state.obs, source, state.warm)
+    result = mpc.mpc_step(s, state.obs, source, state.warm)
     ms = 1e3 * (time.perf_counter() - t0)
     return ms, result.J, violation(s, state, source, result.plan), bool(result.fallback), result.zstop
 
@@ -99,34 +96,28 @@ def table(rows: dict, metrics: dict) -> str:
 
 
 @guarded
-def run(per_scenario=4, models_dir="models", states_path=DEFAULT_PATH, only=()) -> dict:
-    """Load the saved states, step each with both Z-steps for every available source, print, log to MLflow."""
-    import torch
-
+def run(cfg: DictConfig) -> dict:
+    """Load the saved states, step each with both Z-steps for every available source, log the table and to MLflow."""
     import_pygranso()  # one clear line if the extra is missing, before any work
-    torch.set_num_threads(1)
-    states = subset(planning_states(states_path), per_scenario)
-    srcs = {n: s for n, s in sources(models_dir).items() if not only or n in only}
-    for name, src in srcs.items():  # warm-up: first calls pay for imports and allocations (PyGranso's import is done)
-        step(settings(states[0].scenario, ("zstep=sqp",)), states[0], src)
-    rows = compare(srcs, states)
+    only = list(cfg.zstep_compare.sources)
+    with single_threaded(cfg):
+        states = subset(planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario,
+                                        gradients=cfg.states.gradients, seed=cfg.states.seed), cfg.zstep_compare.per_scenario)
+        srcs = {n: s for n, s in sources(cfg.models_dir).items() if not only or n in only}
+        for src in srcs.values():  # warm-up: first calls pay for imports and allocations (PyGranso's import is done)
+            step(settings(states[0].scenario, ("zstep=sqp",)), states[0], src)
+        rows = compare(srcs, states)
     metrics = summary(rows)
-    print(f"{len(states)} planning states ({', '.join(sorted({st.scenario for st in states}))}), one thread")
-    print(table(rows, metrics))
-    log_bench("zstep_compare", {"per_scenario": per_scenario, "models_dir": models_dir, "states": str(states_path),
-                                "sources": list(srcs)}, srcs, len(states), metrics)
+    log.info("\n%s planning states (%s), one thread\n%s", len(states), ", ".join(sorted({st.scenario for st in states})),
+             table(rows, metrics))
+    log_bench("zstep_compare", cfg, srcs, len(states), metrics)
     return metrics
 
 
-def main():
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="bench")
+def main(cfg: DictConfig) -> None:
     """Console entry point (`python -m bench.zstep_compare`)."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--per-scenario", type=int, default=4, help="saved states used per scenario (0: all)")
-    p.add_argument("--models-dir", default="models")
-    p.add_argument("--states", type=Path, default=DEFAULT_PATH, help="saved states (.npz); collected first if missing")
-    p.add_argument("--sources", nargs="*", default=(), help="only these gradient sources (default: every available)")
-    a = p.parse_args()
-    run(a.per_scenario, a.models_dir, a.states, tuple(a.sources))
+    run(cfg)
 
 
 if __name__ == "__main__":

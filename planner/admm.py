@@ -88,7 +88,7 @@ class Solve(NamedTuple):
     zinfo: dict
 
 
-def admm_solve(prob: Problem, st: ADMMState, max_iters=50, tol_F=1e-3, tol_step=1e-3):
+def admm_solve(prob: Problem, st: ADMMState, max_iters, tol_F, tol_step):
     """Iterate admm_step until ||F|| <= tol_F and the iterate change (inf-norm) <= tol_step, or max_iters."""
     F_norm = change = np.inf
     info, k = {}, 0

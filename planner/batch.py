@@ -5,49 +5,43 @@ An episode that raises is recorded as a crash with its message in the CSV; the b
 over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size.
 """
 import csv
+import logging
+import sys
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from hydra.utils import instantiate  # noqa: E402
 from joblib import Parallel, delayed  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from core.jobs import mlflow_run  # noqa: E402
+from planner import report, setup  # noqa: E402
 
 FIGURES = {"t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
            "step_ms": "MPC step wall time (ms, every step)", "admm_iters_mean": "ADMM iterations (episode mean)",
            "fallbacks": "fallbacks per episode"}
 _WORKER = {}  # per process: the config it was set up for, and its (scenario, source, settings)
+log = logging.getLogger(__name__)
 
 
-def setup(cfg):
-    """Scenario, gradient source and MPC settings for `cfg`, built once per worker process (models load once)."""
+def worker_setup(cfg):
+    """planner.setup.setup(cfg), once per worker process (models load once), torch on one thread: the workers fill the cores."""
     key = OmegaConf.to_yaml(cfg)
     if _WORKER.get("key") != key:
-        import sys
-
-        from planner import cli
-        from planner.gradients import make_source
-
-        scenario = instantiate(cfg.scenario, _convert_="all")
-        source = make_source(cfg.gradients, cfg.predictor, cfg.models_dir, cfg.fd_step, dict(cfg.analytic))
-        if "torch" in sys.modules:  # one thread per worker: the workers already fill the cores
+        if "torch" in sys.modules:
             sys.modules["torch"].set_num_threads(1)
-        _WORKER.update(key=key, value=(scenario, source, cli.settings(cfg, scenario)))
+        _WORKER.update(key=key, value=setup.setup(cfg))
     return _WORKER["value"]
 
 
 def episode(cfg_dict: dict, method: str, seed: int):
     """(CSV row, per-step wall times ms, iterations of the non-fallback steps) of one episode; never raises."""
     try:
-        from planner import cli, report
-
         cfg = OmegaConf.create(cfg_dict)
-        scenario, source, s = setup(cfg)
-        ep = cli.drive(cfg, scenario, source, s, method, seed=seed)
+        scenario, source, s = worker_setup(cfg)
+        ep = setup.drive(cfg, scenario, source, s, method, seed=seed)
         m = report.metrics(ep, scenario.y_ref, scenario.x_ref, cfg.merge_tol)
         finite = np.isfinite(ep.states).all() and np.isfinite(ep.controls).all() and \
             np.isfinite([m[k] for k in ("t_merge", "C_max", "d_min_m")]).all()
@@ -107,34 +101,33 @@ def drive_all(cfg, method: str) -> list:
     return Parallel(n_jobs=cfg.n_jobs)(delayed(episode)(cfg_dict, method, seed) for seed in seeds)
 
 
-def record(cfg, scenario_name: str, source, method: str, out: list, out_dir) -> dict:
+def record(cfg, scenario, source, s, method: str, out: list, out_dir) -> dict:
     """Aggregate drive_all's output, write the CSV and histograms to out_dir, log one MLflow run; returns its metrics."""
     import mlflow
 
     rows = [o[0] for o in out]
     step_ms = [t for o in out for t in o[1]]
     r = aggregate(rows, step_ms, [k for o in out for k in o[2]])
-    tag = f"{method}_{source.name}_{scenario_name}"
-    title = f"{scenario_name}, {method}, gradients={source.name}: {len(rows)} episodes"
+    tag = f"{method}_{source.name}_{scenario.name}"
+    title = f"{scenario.name}, {method}, gradients={source.name}: {len(rows)} episodes"
     csv_path = out_dir / f"episodes_{tag}.csv"
     write_csv(rows, csv_path)
     plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
-    with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario_name}", gradients=source.name,
-                    method=method, zstep=cfg.zstep, scenario=scenario_name, seed=cfg.seed,
-                    predictor=source.predictor.name, episodes=len(rows)):
+    with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario.name}", method=method,
+                    episodes=len(rows), **setup.run_params(scenario, source, s, cfg.seed)):
         mlflow.log_metrics(r)
         mlflow.log_artifact(str(csv_path))
         for p in plots:
             mlflow.log_artifact(str(p), "plots")
     for e in sorted({row["error"] for row in rows if row["crash"]}):
-        print(f"[{method}] crash: {e}")
-    print(f"[{method}] {title}: merged {r['merged']:.1%}, collision {r['collision']:.1%}, t_merge {r['t_merge']:.1f} "
+        log.info(f"[{method}] crash: {e}")
+    log.info(f"[{method}] {title}: merged {r['merged']:.1%}, collision {r['collision']:.1%}, t_merge {r['t_merge']:.1f} "
           f"steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / {r['step_ms_p95']:.1f} p95, "
           f"{r['fallbacks']:.2f} fallbacks per episode, {r['crashes']:.0f} crashes, {r['nans']:.0f} NaN episodes; "
           f"outputs in {out_dir}")
     return r
 
 
-def run(cfg, scenario_name: str, source, methods, out_dir) -> dict:
+def run(cfg, scenario, source, s, methods, out_dir) -> dict:
     """Drive cfg.episodes episodes per method, write and log each method's batch; returns {method: metrics}."""
-    return {m: record(cfg, scenario_name, source, m, drive_all(cfg, m), out_dir) for m in methods}
+    return {m: record(cfg, scenario, source, s, m, drive_all(cfg, m), out_dir) for m in methods}

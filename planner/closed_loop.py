@@ -46,8 +46,10 @@ class Episode:
     collided: bool = False
 
 
-def drive(world: World, planner, source, x_ref, target_lane, T_obs=8, max_steps=60, others="reactive"):
-    """Run planner(obs, warm) -> StepResult until the ego passes x_ref or max_steps; never raises for a bad step."""
+def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, others):
+    """Run planner(obs, warm) -> StepResult until the ego passes x_ref or max_steps; never raises for a bad step.
+
+    T_obs: observed steps; others: "reactive" (the world's drivers) or "predictor" (moved by `source`)."""
     from planner.mpc import Observation
 
     ep = Episode(states=[world.z.copy()])

@@ -9,14 +9,15 @@ from scipy import sparse
 
 @dataclass(frozen=True)
 class Weights:
-    """Table I: lambda_div (1/m^2), lambda_v (s^2/m^2), lambda_delta, lambda_ddelta (1/rad^2), lambda_a, lambda_da (s^4/m^2)."""
+    """Table I: lambda_div (1/m^2), lambda_v (s^2/m^2), lambda_delta, lambda_ddelta (1/rad^2), lambda_a, lambda_da (s^4/m^2);
+    the values live in conf/paper/table1.yaml."""
 
-    lambda_div: float = 1.0
-    lambda_v: float = 1.0
-    lambda_delta: float = 0.6
-    lambda_a: float = 0.4
-    lambda_ddelta: float = 0.4
-    lambda_da: float = 0.2
+    lambda_div: float
+    lambda_v: float
+    lambda_delta: float
+    lambda_a: float
+    lambda_ddelta: float
+    lambda_da: float
 
 
 class Quadratic(NamedTuple):

@@ -2,14 +2,11 @@
 
 Each source offers `values(history, ego_futures)` (B, T_p, M, 2) for a batch of ego plans and
 `jacobian(history, ego_future)` -> values (T_p, SLOTS, 2), d values / d ego xy (T_p, M, 2, T_p, 2), metres throughout.
+Built by the `gradients` config group (conf/gradients/), each option naming its class, predictor and settings.
 """
 import numpy as np
 
-from core.jobs import UserError
 from core.rollout import rollout, rollout_jacobian
-
-SOURCES = ("teacher", "student", "surrogate", "fd", "cv", "analytic")
-PREDICTORS = ("teacher", "student", "cv", "analytic")
 
 
 class Source:
@@ -62,6 +59,8 @@ class Surrogate(Source):
 class Autodiff(Source):
     """Reverse-mode autodiff (torch.func.jacrev) through the whole recursive rollout of the predictor's torch module."""
 
+    torch_rollout = True  # `module` and `dtype` give a torch rollout that autograd can differentiate (zstep=pygranso)
+
     def __init__(self, name, predictor):
         super().__init__(name, predictor)
         import torch
@@ -101,37 +100,3 @@ class CentralDifferences(Source):
         grads = (out[1:n + 1] - out[n + 1:]) / (2 * self.h)  # (n, T_p, M, 2)
         return out[0], np.moveaxis(grads, 0, -1).reshape(out.shape[1:] + ego_future.shape)
 
-
-def load_predictor(name, models_dir="models", analytic=None):
-    """A predictor by name: `cv` and `analytic` are built in, `teacher` and `student` come from distill.models."""
-    if name == "cv":
-        from distill.predictors import ConstantVelocity
-
-        return ConstantVelocity()
-    if name == "analytic":
-        from distill.analytic import Analytic
-
-        return Analytic(**(analytic or {}))
-    if name not in PREDICTORS:
-        raise UserError(f"unknown predictor '{name}'; choose one of {', '.join(PREDICTORS)}")
-    from distill import models  # imported here: it needs torch, which cv, analytic and surrogate runs do not
-
-    return models.load(name, models_dir=models_dir)
-
-
-def make_source(gradients, predictor="auto", models_dir="models", fd_step=1e-2, analytic=None):
-    """The gradient source `gradients` over the predictor `predictor` (auto: the source's own, the teacher otherwise)."""
-    if gradients not in SOURCES:
-        raise UserError(f"unknown gradients '{gradients}'; choose one of {', '.join(SOURCES)}")
-    if predictor == "auto":
-        predictor = gradients if gradients in PREDICTORS else "teacher"
-    model = load_predictor(predictor, models_dir, analytic)
-    if gradients == "teacher":
-        return Autodiff(gradients, model)
-    if gradients == "surrogate":
-        from surrogate import models as surrogate_models
-
-        return Surrogate(gradients, model, surrogate_models.load(models_dir=models_dir))
-    if gradients == "fd":
-        return CentralDifferences(gradients, model, fd_step)
-    return ExactLocal(gradients, model)

@@ -3,8 +3,8 @@
 A step never raises for a bad observation, a solver failure or an unsafe result: it returns the shifted previous plan
 (if the predictor still finds it safe) or braking in lane, with the reason.
 """
-from dataclasses import dataclass, field
-from typing import NamedTuple
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -12,38 +12,42 @@ from core.rollout import b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
 from planner import admm, cost, dynamics
-from planner.pygranso_zstep import PyGransoSettings
 from planner.qp import SolverFailure
 from planner.safety import Safety
-from planner.zstep import ZSTEPS, SQPSettings
 
 
 @dataclass(frozen=True)
 class Settings:
-    """Everything a step needs besides the observation, SI units; built from the `planner` config."""
+    """Everything a step needs besides the observation, SI units; built from the `planner` config's `mpc` node, whose
+    YAML is the one home of every value (planner.setup passes the scenario's y_ref, v_ref, road and params)."""
 
     weights: cost.Weights
     y_ref: float  # m
     v_ref: float  # m/s
     road: Road
     params: bicycle.BicycleParams
-    T_p: int = 8
-    rho: float = 100.0
-    R: float = 3.95  # r + r_i + eps (m)
-    delta_box: tuple = (-0.5, 0.5)  # rad
-    a_box: tuple = (-4.0, 3.0)  # m/s^2
-    psi_box: tuple = (-0.6, 0.6)  # rad
-    v_box: tuple = (0.0, 10.0)  # m/s
-    y_margin: float = 1.0  # how far the ego's centre may leave the outer lane centres (m)
-    linearize: str = "last_observed"  # or "along_plan"
-    admm: dict = field(default_factory=lambda: {"max_iters": 50, "tol_F": 1e-3, "tol_step": 1e-3})
-    zstep: str = "sqp"
-    sqp: SQPSettings = SQPSettings()
-    pygranso: PyGransoSettings = PyGransoSettings()
-    osqp: dict = field(default_factory=lambda: {"eps_abs": 1e-6, "eps_rel": 1e-6, "max_iter": 4000})
-    check_tol: float = 0.05  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
-    check_steps: int = 2  # steps of that rollout checked: only its start is ever applied, the rest is replanned
-    brake: float = -3.0  # deceleration of the braking-in-lane fallback (m/s^2)
+    T_p: int  # prediction horizon (steps of dt)
+    rho: float  # ADMM penalty
+    r: float  # ego's safety radius (m)
+    r_i: float  # the others' safety radius (m)
+    eps: float  # safety margin (m)
+    delta_box: tuple  # rad
+    a_box: tuple  # m/s^2
+    psi_box: tuple  # rad
+    v_box: tuple  # m/s
+    y_margin: float  # how far the ego's centre may leave the outer lane centres (m)
+    linearize: str  # last_observed | along_plan
+    admm: dict  # planner.admm.admm_solve's max_iters, tol_F, tol_step
+    zstep: Callable  # zstep(Phi_3, C, rho, lo, hi, safety, osqp_settings) -> a Z-step (planner.zstep)
+    osqp: dict  # OSQP settings of every sub-problem
+    check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
+    check_steps: int  # steps of that rollout checked: only its start is ever applied, the rest is replanned
+    brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
+
+    @property
+    def R(self) -> float:
+        """Single-circle safety distance r + r_i + eps (m), eq. (6)."""
+        return self.r + self.r_i + self.eps
 
 
 class Observation(NamedTuple):
@@ -121,7 +125,7 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
         dyn, Phi_1, Phi_2, Phi_3, s.rho,
         admm.box_qp(Phi_1, dyn.A, s.rho, *s.delta_box, s.osqp),
         admm.box_qp(Phi_2, dyn.B, s.rho, *s.a_box, s.osqp),
-        ZSTEPS[s.zstep](Phi_3, dyn.C, s.rho, lo, hi, safety, getattr(s, s.zstep), s.osqp),  # its own config block
+        s.zstep(Phi_3, dyn.C, s.rho, lo, hi, safety, s.osqp),
     )
     return prob, start._replace(Z=np.clip(start.Z, lo, hi))
 
@@ -143,12 +147,12 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
         prev = shift(warm)._replace(zstate=None)
         b_min, Z = plan_safe(s, obs, source, prev.Delta, prev.alpha) if seen else (np.nan, prev.Z)
         if not seen or b_min >= -s.check_tol:
-            return StepResult(np.array([prev.Delta[0], prev.alpha[0]]), prev._replace(Z=Z) if z_ok else None,
-                              J_of(s, obs.u_prev, prev.Delta, prev.alpha, Z), 0, "fallback", np.nan, b_min, np.nan,
-                              f"{why}; shifted previous plan")
+            return StepResult(u=np.array([prev.Delta[0], prev.alpha[0]]), plan=prev._replace(Z=Z) if z_ok else None,
+                              J=J_of(s, obs.u_prev, prev.Delta, prev.alpha, Z), iters=0, reason="fallback", F_norm=np.nan,
+                              b_min=b_min, slack=np.nan, fallback=f"{why}; shifted previous plan")
     if not z_ok:
-        return StepResult(np.array([0.0, s.brake]), None, np.nan, 0, "fallback", np.nan, np.nan, np.nan,
-                          f"{why}; braking straight")
+        return StepResult(u=np.array([0.0, s.brake]), plan=None, J=np.nan, iters=0, reason="fallback", F_norm=np.nan,
+                          b_min=np.nan, slack=np.nan, fallback=f"{why}; braking straight")
     z, Delta, alpha = np.asarray(obs.z0, float), [], []
     lane_y = s.road.centre(s.road.lane_of(z[1]))
     if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
@@ -160,11 +164,11 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
     Delta, alpha = np.array(Delta), np.array(alpha)
     Z = simulate(obs.z0, Delta, alpha, s.params)
     plan = admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p))
-    return StepResult(np.array([Delta[0], alpha[0]]), plan, J_of(s, obs.u_prev, Delta, alpha, Z), 0, "fallback",
-                      np.nan, np.nan, np.nan, f"{why}; braking in lane")
+    return StepResult(u=np.array([Delta[0], alpha[0]]), plan=plan, J=J_of(s, obs.u_prev, Delta, alpha, Z), iters=0,
+                      reason="fallback", F_norm=np.nan, b_min=np.nan, slack=np.nan, fallback=f"{why}; braking in lane")
 
 
-def admm_step(s: Settings, obs: Observation, source, warm) -> StepResult:
+def mpc_step(s: Settings, obs: Observation, source, warm) -> StepResult:
     """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks."""
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
         return fallback(s, obs, source, warm, "non-finite observation")
@@ -179,5 +183,6 @@ def admm_step(s: Settings, obs: Observation, source, warm) -> StepResult:
     if b_min < -s.check_tol:
         why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
         return fallback(s, obs, source, warm, f"{why} (min b_i {b_min:.2f} m^2)")
-    return StepResult(np.array([st.Delta[0], st.alpha[0]]), st, prob.J(st), solve.iters, solve.reason, solve.F_norm,
-                      b_min, solve.zinfo.get("slack", 0.0), "", solve.zinfo.get("termination_reason", ""))
+    return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=prob.J(st), iters=solve.iters, reason=solve.reason,
+                      F_norm=solve.F_norm, b_min=b_min, slack=solve.zinfo.get("slack", 0.0), fallback="",
+                      zstop=solve.zinfo.get("termination_reason", ""))

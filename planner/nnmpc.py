@@ -44,9 +44,9 @@ def candidates(s: Settings, z0, lengths, accels):
     return list(zip(*track(s, z0, y1, L, a)))
 
 
-def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths=(8.0, 12.0, 16.0, 24.0, 32.0),
-               accels=(-2.0, -1.0, 0.0, 1.0, 2.0)) -> StepResult:
-    """One NNMPC step: the safe candidate of least J, or the fallback when none is safe."""
+def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths, accels) -> StepResult:
+    """One NNMPC step over lane-change lengths (m) and accelerations (m/s^2): the safe candidate of least J, or the fallback
+    when none is safe."""
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0))):
         return fallback(s, obs, source, warm, "non-finite observation")
     cands = candidates(s, obs.z0, lengths, accels)
@@ -60,5 +60,6 @@ def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths=(8.0, 12.0, 
         return fallback(s, obs, source, warm, f"no safe candidate (best min b_i {b_min.max():.2f} m^2)")
     k = int(np.argmin(np.where(safe, J, np.inf)))
     Delta, alpha, Z = cands[k]
-    return StepResult(np.array([Delta[0], alpha[0]]), admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)), float(J[k]),
-                      0, f"candidate {k} of {len(cands)}", 0.0, float(b_min[k]), 0.0, "")
+    return StepResult(u=np.array([Delta[0], alpha[0]]), plan=admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)),
+                      J=float(J[k]), iters=0, reason=f"candidate {k} of {len(cands)}", F_norm=0.0, b_min=float(b_min[k]),
+                      slack=0.0, fallback="")

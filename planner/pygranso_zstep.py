@@ -18,7 +18,6 @@ import numpy as np
 
 from core.jobs import UserError
 from core.rollout import b_i, ego_xy, rollout
-from planner.gradients import Autodiff
 from planner.qp import SolverFailure
 
 TERMINATION = {  # PyGranso's soln.termination_code, in its own words (pygranso.pygranso docstring)
@@ -39,16 +38,17 @@ TERMINATION = {  # PyGranso's soln.termination_code, in its own words (pygranso.
 
 
 class PyGransoSettings(NamedTuple):
-    """PyGranso's limits and tolerances per Z-update: iterations, stationarity, violation (m^2 or state units), clock (s)."""
+    """PyGranso's limits and tolerances per Z-update: iterations, stationarity, violation (m^2 or state units), clock (s);
+    the values live in conf/zstep/pygranso.yaml."""
 
-    maxit: int = 10
-    opt_tol: float = 1e-6
-    viol_ineq_tol: float = 1e-6
-    mu0: float = 1.0  # initial penalty weight on the objective
-    limited_mem_size: int = 0  # 0: full BFGS inverse Hessian (the paper's BFGS-SQP); > 0: L-BFGS memory
-    maxclocktime: float = float("inf")
-    warm_hessian: bool = True  # carry the BFGS inverse Hessian and mu across the ADMM iterations of one MPC step
-    infeasible_tol: float = 1e-3  # max violation (m^2) at which the Z-update counts as infeasible, like sqp.slack_tol
+    maxit: int
+    opt_tol: float
+    viol_ineq_tol: float
+    mu0: float  # initial penalty weight on the objective
+    limited_mem_size: int  # 0: full BFGS inverse Hessian (the paper's BFGS-SQP); > 0: L-BFGS memory
+    maxclocktime: float  # s
+    warm_hessian: bool  # carry the BFGS inverse Hessian and mu across the ADMM iterations of one MPC step
+    infeasible_tol: float  # max violation (m^2) at which the Z-update counts as infeasible, like sqp's slack_tol
 
 
 @contextlib.contextmanager
@@ -121,8 +121,9 @@ def source_b(safety):
     return SourceB.apply
 
 
-def autodiff_b(safety, source: Autodiff):
-    """b_i(Z) (N*T_p,) in m^2 through the predictor's own torch rollout: PyGranso back-propagates through the network."""
+def autodiff_b(safety, source):
+    """b_i(Z) (N*T_p,) in m^2 through the predictor's own torch rollout (`source.module` in `source.dtype`): PyGranso
+    back-propagates through the network."""
     import torch
 
     module = source.module
@@ -140,7 +141,10 @@ def autodiff_b(safety, source: Autodiff):
 class PyGransoZStep:
     """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. -b_i(Z) <= 0 and the box, by PyGranso's BFGS-SQP."""
 
-    def __init__(self, Phi_3, C, rho, lo, hi, safety, settings: PyGransoSettings, osqp_settings=None):
+    name = "pygranso"
+
+    def __init__(self, Phi_3, C, rho, lo, hi, safety, osqp_settings, settings: PyGransoSettings):
+        """osqp_settings: unused (PyGranso brings its own QP solver); taken for the Z-step signature."""
         import torch
 
         self.pygranso, self.Struct = import_pygranso()
@@ -148,7 +152,7 @@ class PyGransoZStep:
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.H = torch.as_tensor((Phi_3.P + rho * C.T @ C).toarray())  # the smooth part's exact Hessian
         self.i_lo, self.i_hi = np.flatnonzero(np.isfinite(self.lo)), np.flatnonzero(np.isfinite(self.hi))
-        self.b = autodiff_b(safety, safety.source) if isinstance(safety.source, Autodiff) else source_b(safety)
+        self.b = autodiff_b(safety, safety.source) if getattr(safety.source, "torch_rollout", False) else source_b(safety)
 
     def c(self, Z):
         """Inequality constraints c(Z) <= 0: -b_i(Z) (m^2), then z_min - Z and Z - z_max on the finite bounds."""

@@ -1,7 +1,8 @@
-"""Z-update solvers behind one signature, chosen by the `zstep` config key; `sqp` is sequential QP with OSQP.
+"""Z-update solvers behind one signature, chosen by the `zstep` config group (conf/zstep/); `sqp` is sequential QP with OSQP.
 
 A Z-step is built once per MPC step from (Phi_3, C, rho, box, safety, settings) and called per ADMM iteration as
 zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info), where zstate is the solver's own carried state (None at first).
+Its class attribute `name` is the option's name (MLflow param `zstep`).
 """
 from functools import lru_cache
 from typing import NamedTuple
@@ -9,22 +10,22 @@ from typing import NamedTuple
 import numpy as np
 from scipy import sparse
 
-from planner.pygranso_zstep import PyGransoZStep
 from planner.qp import QP
 
 
 class SQPSettings(NamedTuple):
-    """Trust region on the ego's x, y (m), its bounds and growth, iteration cap, step tolerance (m), safety form."""
+    """Trust region on the ego's x, y (m), its bounds and growth, iteration cap, step tolerance (m), safety form; the
+    values live in conf/zstep/sqp.yaml."""
 
-    max_iters: int = 2
-    trust_radius: float = 1.0
-    min_radius: float = 0.05
-    max_radius: float = 4.0
-    tol: float = 1e-4
-    mode: str = "hard"  # hard: b_i >= 0 with an elastic slack; penalty: - lambda_s' b_i in the objective (eq. (11))
-    lambda_s: float = 1.0  # penalty-form multiplier (1/m^2 per constraint)
-    slack_penalty: float = 1e4  # L1 price of violating a linearised b_i >= 0 (per m^2)
-    slack_tol: float = 1e-3  # slack (m^2) above which the linearisation counts as infeasible
+    max_iters: int
+    trust_radius: float
+    min_radius: float
+    max_radius: float
+    tol: float
+    mode: str  # hard: b_i >= 0 with an elastic slack; penalty: - lambda_s' b_i in the objective (eq. (11))
+    lambda_s: float  # penalty-form multiplier (1/m^2 per constraint)
+    slack_penalty: float  # L1 price of violating a linearised b_i >= 0 (per m^2)
+    slack_tol: float  # slack (m^2) above which the linearisation counts as infeasible
 
 
 @lru_cache(maxsize=8)
@@ -47,7 +48,9 @@ def constraint_pattern(n_Z, n_b):
 class SQPZStep:
     """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. box, b_i(Z) >= 0, by trust-region SQP over x = [Z; s]."""
 
-    def __init__(self, Phi_3, C, rho, lo, hi, safety, settings: SQPSettings, osqp_settings):
+    name = "sqp"
+
+    def __init__(self, Phi_3, C, rho, lo, hi, safety, osqp_settings, settings: SQPSettings):
         self.Phi_3, self.C, self.rho, self.safety, self.s = Phi_3, C, rho, safety, settings
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         n_Z = C.shape[0]
@@ -106,5 +109,3 @@ class SQPZStep:
         return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
                            "b_min": float(b_Z.min(initial=np.inf))}
 
-
-ZSTEPS = {"sqp": SQPZStep, "pygranso": PyGransoZStep}

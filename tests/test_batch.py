@@ -4,7 +4,7 @@ import csv
 import mlflow
 
 from conftest import compose_cfg
-from planner import cli
+from planner import cli, setup
 
 
 def batch_cfg(tmp_path, *overrides):
@@ -25,14 +25,14 @@ def test_batch_logs_one_run_with_rates_csv_and_histograms(tmp_path):
 
 
 def test_a_crashing_episode_is_counted_and_the_batch_goes_on(tmp_path, monkeypatch):
-    real = cli.drive
+    real = setup.drive
 
     def flaky(cfg, scenario, source, s, method, seed=None):
         if seed == 1:
             raise RuntimeError("boom in episode 1")
         return real(cfg, scenario, source, s, method, seed=seed)
 
-    monkeypatch.setattr(cli, "drive", flaky)  # n_jobs=1: joblib runs in this process, so the patch applies
+    monkeypatch.setattr(setup, "drive", flaky)  # n_jobs=1: joblib runs in this process, so the patch applies
     m = cli.run(batch_cfg(tmp_path, "episodes=3", "n_jobs=1"))["nnmpc"]
     assert m["crashes"] == 1 and m["episodes"] == 3 and 0 <= m["merged"] <= 1  # rates over the 2 that finished
     rows = {r["seed"]: r for r in csv.DictReader(open(tmp_path / "episodes_nnmpc_analytic_random.csv"))}

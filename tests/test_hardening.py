@@ -10,32 +10,31 @@ from hydra.utils import instantiate
 
 from conftest import compose_cfg
 from core.jobs import UserError, guarded, mlflow_run
-from planner import cli, mpc, nnmpc
+from planner import cli, mpc
 from planner.closed_loop import backfill
-from planner.gradients import make_source
+from planner.setup import planner_config, setup
 
 
 @pytest.fixture(scope="module")
-def setup():
-    """two_lane settings, an observation of its start and a warm plan from one solved step (analytic predictor)."""
-    cfg = compose_cfg("planner", ["scenario=two_lane"])
-    scenario = instantiate(cfg.scenario, _convert_="all")
-    s, source = cli.settings(cfg, scenario), make_source("analytic")
+def start():
+    """two_lane settings, an observation of its start, a warm plan from one solved step (analytic predictor), the NNMPC step."""
+    cfg = planner_config("two_lane", ["gradients=analytic", "method=nnmpc"])
+    scenario, source, s = setup(cfg)
     z = scenario.make_world(0).z
     obs = mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2))
-    return s, source, obs, mpc.admm_step(s, obs, source, None).plan
+    return s, source, obs, mpc.mpc_step(s, obs, source, None).plan, instantiate(cfg.method.nnmpc)
 
 
 @pytest.mark.parametrize("field", ["z0", "u_prev", "history"])
 @pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
-def test_non_finite_observation_is_a_reported_fallback(setup, field, bad):
-    s, source, obs, warm = setup
+def test_non_finite_observation_is_a_reported_fallback(start, field, bad):
+    s, source, obs, warm, nnmpc_step = start
     broken = getattr(obs, field).copy()
     broken.flat[1] = bad
     obs = obs._replace(**{field: broken})
-    steps = [lambda w: mpc.admm_step(s, obs, source, w)]
+    steps = [lambda w: mpc.mpc_step(s, obs, source, w)]
     if field != "u_prev":  # NNMPC never reads the last input
-        steps.append(lambda w: nnmpc.nnmpc_step(s, obs, source, w))
+        steps.append(lambda w: nnmpc_step(s, obs, source, w))
     for step in steps:
         for w in (warm, None):
             result = step(w)

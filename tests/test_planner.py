@@ -1,29 +1,33 @@
 """Planner pieces: ADMM reaches the one-QP MPC optimum, d b_i / d Z from every source, fallbacks instead of crashes."""
 import copy
+from pathlib import Path
 
 import numpy as np
 import osqp
 import pytest
-from hydra.utils import instantiate
 from scipy import sparse
+from test_configs import drift
 
-from conftest import compose_cfg
-from core.jobs import UserError
+from core.jobs import CONF_DIR, UserError
 from core.rollout import ego_xy
 from distill import models as distill_models
-from planner import admm, cli, mpc
+from planner import admm, cli, cost, dynamics, mpc
 from planner.closed_loop import backfill
-from planner.gradients import Autodiff, CentralDifferences, make_source
+from planner.gradients import Autodiff, CentralDifferences
 from planner.qp import QP
 from planner.safety import Safety
+from planner.setup import build, drive, make, planner_config, setup
+
+
+def source(gradients, *overrides):
+    """The gradient source `planner gradients=...` builds (cv and analytic need no model)."""
+    return make("two_lane", [f"gradients={gradients}", *overrides])[1]
 
 
 @pytest.fixture(scope="module")
-def setup():
-    """The composed planner config, the two_lane scenario, and its MPC settings."""
-    cfg = compose_cfg("planner", ["scenario=two_lane"])
-    scenario = instantiate(cfg.scenario, _convert_="all")
-    return cfg, scenario, cli.settings(cfg, scenario)
+def two_lane():
+    """The two_lane scenario, cv gradients and the MPC settings, as the planner builds them."""
+    return make("two_lane", ["gradients=cv"])
 
 
 def observe(z, u_prev=(0.0, 0.0)):
@@ -31,12 +35,12 @@ def observe(z, u_prev=(0.0, 0.0)):
     return mpc.Observation(z[0].copy(), np.array(u_prev), backfill(z, 8, 0.2))
 
 
-def test_admm_converges_to_the_stacked_qp_when_safety_is_inactive(setup):
-    cfg, scenario, s = setup
+def test_admm_converges_to_the_stacked_qp_when_safety_is_inactive(two_lane):
+    scenario, cv, s = two_lane
     z = scenario.make_world(0).z
     z[1:, 0] += 300.0  # the others far ahead: every b_i is slack
     obs = observe(z, (0.05, 0.3))
-    prob, start = mpc.build(s, obs, make_source("cv"), None)
+    prob, start = mpc.build(s, obs, cv, None)
     st, solve = admm.admm_solve(prob, start, max_iters=3000, tol_F=1e-7, tol_step=1e-7)
     assert solve.reason == "converged" and solve.F_norm < 1e-6
     # The same MPC as one QP over x = [Delta; alpha; Z]: J, F = 0, the same boxes.
@@ -61,31 +65,32 @@ def sources():
 def trained_source(gradients, models_dir):
     """A trained source; the ReLU teacher in float64, so that central differences can resolve its kinked gradient."""
     if gradients == "student":
-        return make_source("student", "auto", models_dir)
+        return source("student", f"models_dir={models_dir}")
     module = copy.deepcopy(distill_models.load("teacher", models_dir).module).double()
     return Autodiff("teacher", distill_models.TorchPredictor("teacher", module))
 
 
 @pytest.mark.parametrize("gradients,predictor,tol", sources())
-def test_safety_gradient_matches_central_differences(setup, gradients, predictor, tol, request):
-    cfg, scenario, s = setup
+def test_safety_gradient_matches_central_differences(two_lane, gradients, predictor, tol, request):
+    scenario, _, s = two_lane
     z = scenario.make_world(0).z
     z[0, 1], z[0, 2] = 1.6, 0.15  # the ego nudging towards the platoon: the analytic predictor reacts
     obs = observe(z)
     if predictor == "trained":
-        source = trained_source(gradients, request.getfixturevalue("tiny_models")[0])
+        src = trained_source(gradients, request.getfixturevalue("tiny_models")[0])
     else:
-        source = make_source(gradients, predictor, "models", fd_step=1e-4)
+        src = source(gradients, *([f"predictor={predictor}"] if predictor != "auto" else []),
+                     *(["gradients.h=1e-4"] if gradients == "fd" else []))
     Z = mpc.simulate(obs.z0, np.full(s.T_p, 0.1), np.full(s.T_p, 0.5), s.params)
-    b, Jb = Safety(source, obs.history, s.R, s.T_p).linearize(Z)
-    values = Safety(CentralDifferences("fd", source.predictor, 1e-4), obs.history, s.R, s.T_p)
+    b, Jb = Safety(src, obs.history, s.R, s.T_p).linearize(Z)
+    values = Safety(CentralDifferences("fd", src.predictor, 1e-4), obs.history, s.R, s.T_p)
     h = 1e-2 if tol > 1e-3 else 1e-6  # the float32 student needs a larger step
     Jfd = np.stack([(values(Z + h * e) - values(Z - h * e)) / (2 * h) for e in np.eye(len(Z))], 1)
     assert np.abs(Jfd).max() > 1.0  # the constraints do depend on the plan
     if gradients in ("analytic", "teacher", "student"):  # interactive: the others' reaction shows in d b_i / d Z
         direct = np.zeros_like(Jfd)
         ego = ego_xy(Z, s.T_p)
-        vals = source.values(obs.history, ego[None])[0]
+        vals = src.values(obs.history, ego[None])[0]
         for n in range(vals.shape[1] - 1):
             for t in range(s.T_p):
                 direct[n * s.T_p + t, 4 * t:4 * t + 2] = 2 * (ego[t] - vals[t, n + 1])
@@ -93,16 +98,16 @@ def test_safety_gradient_matches_central_differences(setup, gradients, predictor
     assert np.abs(Jb - Jfd).max() <= tol * max(1.0, np.abs(Jfd).max())
 
 
-def test_nan_observation_falls_back(setup):
-    cfg, scenario, s = setup
+def test_nan_observation_falls_back(two_lane):
+    scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
     bad = obs._replace(history=np.where(np.arange(obs.history.size).reshape(obs.history.shape) == 7, np.nan, obs.history))
-    result = mpc.admm_step(s, bad, make_source("cv"), None)
+    result = mpc.mpc_step(s, bad, cv, None)
     assert "non-finite observation" in result.fallback and np.all(np.isfinite(result.u))
 
 
-def test_osqp_failure_falls_back(setup, monkeypatch):
-    cfg, scenario, s = setup
+def test_osqp_failure_falls_back(two_lane, monkeypatch):
+    scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
     real = osqp.OSQP.solve
 
@@ -112,17 +117,21 @@ def test_osqp_failure_falls_back(setup, monkeypatch):
         return result
 
     monkeypatch.setattr(osqp.OSQP, "solve", failing)
-    result = mpc.admm_step(s, obs, make_source("cv"), None)
+    result = mpc.mpc_step(s, obs, cv, None)
     assert "solver failure (OSQP primal infeasible)" in result.fallback and np.all(np.isfinite(result.u))
 
 
 def test_unknown_names_and_missing_models_are_one_line_errors(tmp_path):
-    with pytest.raises(UserError, match="unknown gradients 'bogus'"):
-        make_source("bogus")
-    with pytest.raises(UserError, match="surrogate"):
-        make_source("surrogate", "analytic", str(tmp_path))
+    choices = "choose one of analytic, cv, fd, student, surrogate, teacher"
+    with pytest.raises(UserError, match=f"unknown gradients 'bogus'; {choices}"):
+        cli.check_groups(["gradients=bogus"])
+    with pytest.raises(UserError, match="unknown zstep 'nope'; choose one of pygranso, sqp"):
+        cli.check_groups(["-m", "zstep=sqp,nope"])  # every value of a sweep
+    cli.check_groups(["gradients=cv,student", "method=both", "seed=3"])
+    with pytest.raises(UserError, match="surrogate.onnx not found: run `surrogate`"):
+        source("surrogate", "predictor=analytic", f"models_dir={tmp_path}")
     with pytest.raises(UserError, match="distill model=teacher"):
-        make_source("teacher", "auto", str(tmp_path))
+        source("teacher", f"models_dir={tmp_path}")
     with pytest.raises(SystemExit):
         cli.prepare(["planner", "scenario=nowhere"])
 
@@ -131,3 +140,77 @@ def test_gradients_flag_spelling():
     assert cli.translate(["planner", "--gradients=surrogate", "scenario=three_lane"]) == \
         ["planner", "gradients=surrogate", "scenario=three_lane"]
     assert cli.translate(["planner", "--gradients", "fd", "method=nnmpc"]) == ["planner", "gradients=fd", "method=nnmpc"]
+
+
+def test_linearisation_along_a_simulated_plan_is_exact_there_and_second_order_near_it(two_lane):
+    scenario, _, s = two_lane
+    rng = np.random.default_rng(0)
+    z0 = np.array([9.2, 0.3, 0.05, 5.0])
+    Delta, alpha = rng.uniform(-0.3, 0.3, s.T_p), rng.uniform(-2.0, 2.0, s.T_p)
+    Z = mpc.simulate(z0, Delta, alpha, s.params)
+    dyn = dynamics.linearize(z0, 0.1, -0.5, s.params, s.T_p, (Delta, alpha, Z))
+    assert np.abs(dyn.F(Delta, alpha, Z)).max() < 1e-12  # A Delta + B alpha + C Z + D = 0 on the rollout itself
+    dD, da = rng.normal(size=s.T_p), rng.normal(size=s.T_p)
+    res = [np.abs(dyn.F(Delta + h * dD, alpha + h * da, mpc.simulate(z0, Delta + h * dD, alpha + h * da, s.params))).max()
+           for h in (1e-2, 2e-2)]
+    assert 1e-9 < res[0] < 1e-2 and 3.0 < res[1] / res[0] < 5.0  # off the plan the error is quadratic in the step
+    about_z0 = dynamics.linearize(z0, Delta[0], alpha[0], s.params, s.T_p)  # eq. (5): one linearisation for the horizon
+    assert np.abs(about_z0.F(Delta, alpha, Z)[:4]).max() < 1e-12 and np.abs(about_z0.F(Delta, alpha, Z)).max() > 1e-3
+
+
+def test_cost_blocks_match_the_papers_sums(two_lane):
+    _, _, s = two_lane
+    w, T, rng = s.weights, s.T_p, np.random.default_rng(1)
+    for _ in range(5):
+        Delta, alpha, Z = rng.normal(0, 0.3, T), rng.normal(0, 2.0, T), rng.normal(0, 5.0, 4 * T)
+        d_prev, a_prev, y_ref, v_ref = rng.normal(0, 0.2), rng.normal(0, 1.0), rng.uniform(0, 8), rng.uniform(2, 8)
+        d, a = np.concatenate([[d_prev], Delta]), np.concatenate([[a_prev], alpha])
+        Phi_1 = sum(w.lambda_delta * d[k + 1] ** 2 + w.lambda_ddelta * (d[k + 1] - d[k]) ** 2 for k in range(T))
+        Phi_2 = sum(w.lambda_a * a[k + 1] ** 2 + w.lambda_da * (a[k + 1] - a[k]) ** 2 for k in range(T))
+        Phi_3 = sum(w.lambda_div * (Z[4 * k + 1] - y_ref) ** 2 + w.lambda_v * (Z[4 * k + 3] - v_ref) ** 2 for k in range(T))
+        assert cost.Phi_1(T, w, d_prev)(Delta) == pytest.approx(Phi_1, rel=1e-12)
+        assert cost.Phi_2(T, w, a_prev)(alpha) == pytest.approx(Phi_2, rel=1e-12)
+        assert cost.Phi_3(T, w, y_ref, v_ref)(Z) == pytest.approx(Phi_3, rel=1e-12)
+
+
+def test_penalty_mode_drives_and_its_z_step_objective_carries_minus_lambda_s_sum_b_i():
+    cfg = planner_config("two_lane", ["gradients=analytic", "zstep.settings.mode=penalty", "zstep.settings.lambda_s=2.0",
+                                      "world=predictor", "max_steps=3"])
+    scenario, src, s = setup(cfg)
+    ep = drive(cfg, scenario, src, s, "admm")
+    assert len(ep.rows) == 3 and np.isfinite(ep.controls).all() and all(r["iterations"] > 0 for r in ep.rows)
+    z = scenario.make_world(0).z
+    z[0, 1], z[0, 2] = 1.6, 0.15  # nudging towards the platoon: b_i varies with the plan
+    prob, st = mpc.build(s, observe(z), src, None)
+    zstep, rng = prob.zstep, np.random.default_rng(2)
+    mu, c_Z = rng.normal(size=4 * s.T_p), prob.dyn.C @ st.Z + rng.normal(0, 0.1, 4 * s.T_p)
+    lin_q = prob.Phi_3.q + prob.dyn.C.T @ (mu - s.rho * c_Z)
+    objective = lambda Z: (prob.Phi_3(Z) + mu @ (prob.dyn.C @ Z) + s.rho / 2 * np.sum((prob.dyn.C @ Z - c_Z) ** 2)
+                           - 2.0 * zstep.safety(Z).sum())
+    Z1, Z2 = st.Z, st.Z + rng.normal(0, 0.3, st.Z.shape)
+    merit = lambda Z: zstep.merit(Z, lin_q, zstep.safety(Z))
+    assert merit(Z1) - merit(Z2) == pytest.approx(objective(Z1) - objective(Z2), rel=1e-9)  # equal up to a constant
+    assert abs(zstep.safety(Z1).sum() - zstep.safety(Z2).sum()) > 1e-2  # so the - lambda_s sum b_i term was tested
+    Z_new, _, _ = zstep(st.Z, mu, c_Z)
+    assert objective(Z_new) < objective(st.Z)  # the step descends the penalty-form objective
+
+
+def group_options(group):
+    """The options of a config group (conf/<group>/*.yaml)."""
+    return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize("override", [f"{g}={o}" for g in ("gradients", "predictor", "zstep", "method") for o in group_options(g)])
+def test_every_planner_target_agrees_with_its_code_defaults(override):
+    problems, checked = drift(planner_config("two_lane", [override]))
+    assert checked >= 5 and not problems, "\n".join(problems)
+
+
+def test_strategy_groups_build_the_named_classes():
+    cfg = planner_config("two_lane", ["gradients=fd", "zstep=pygranso", "method=both", "gradients.h=0.05", "predictor=analytic"])
+    assert isinstance(build(cfg.gradients), CentralDifferences) and build(cfg.gradients).h == 0.05
+    assert build(cfg.gradients).predictor.name == "analytic"
+    zstep = build(cfg.mpc.zstep)
+    assert zstep.func.name == "pygranso" and zstep.keywords["settings"].maxit == cfg.zstep.settings.maxit
+    assert list(cfg.method) == ["admm", "nnmpc"] and build(cfg.method.nnmpc).keywords["lengths"] == [8.0, 12.0, 16.0, 24.0, 32.0]
+    assert make("two_lane", ["gradients=cv"])[2].R == pytest.approx(3.95)  # r + r_i + eps from conf/paper/table1.yaml

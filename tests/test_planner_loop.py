@@ -6,11 +6,10 @@ import sys
 
 import mlflow
 import numpy as np
-from hydra.utils import instantiate
 
 from conftest import compose_cfg
 from planner import cli, closed_loop, mpc
-from planner.gradients import make_source
+from planner.setup import make
 
 
 def plan(tmp_path, *overrides):
@@ -36,14 +35,11 @@ def test_constant_velocity_cannot_open_the_gap(tmp_path):
 
 
 def test_start_in_collision_is_reported(tmp_path):
-    cfg = compose_cfg("planner", ["scenario=two_lane", "gradients=cv"])
-    scenario = instantiate(cfg.scenario, _convert_="all")
-    s = cli.settings(cfg, scenario)
+    scenario, source, s = make("two_lane", ["gradients=cv"])
     world = scenario.make_world(0)
     world.z[0, :2] = world.z[2, :2] - [0.5, 1.4]  # overlapping car 2
-    source = make_source("cv")
-    ep = closed_loop.drive(world, lambda obs, warm: mpc.admm_step(s, obs, source, warm), source, scenario.x_ref,
-                           scenario.target_lane, max_steps=5)
+    ep = closed_loop.drive(world, lambda obs, warm: mpc.mpc_step(s, obs, source, warm), source, scenario.x_ref,
+                           scenario.target_lane, T_obs=8, max_steps=5, others="reactive")
     assert ep.collided and "start in collision" in ep.notes[0]
     assert any(r["fallback"] for r in ep.rows) and np.isfinite(ep.controls).all()
 
@@ -54,5 +50,5 @@ def test_unknown_gradient_name_is_one_clear_line(tmp_path):
     out = subprocess.run([planner, "--gradients=bogus", f"out_dir={tmp_path}"], capture_output=True, text=True, env=env,
                          cwd=tmp_path)
     assert out.returncode == 2
-    assert out.stderr.strip().splitlines() == ["error: unknown gradients 'bogus'; choose one of teacher, student, "
-                                               "surrogate, fd, cv, analytic"]
+    assert out.stderr.strip().splitlines() == ["error: unknown gradients 'bogus'; choose one of analytic, cv, fd, student, "
+                                               "surrogate, teacher"]

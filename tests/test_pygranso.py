@@ -1,30 +1,32 @@
 """zstep=pygranso, the paper's Z-update by PyGranso: same local solution as our SQP Z-step on a small instance, its
 termination reason in the step info and the per-step log, and one clear error when the `pygranso` extra is missing."""
-import dataclasses
 import sys
 
 import numpy as np
 import pytest
-from hydra.utils import instantiate
 
 from conftest import compose_cfg
 from core.jobs import UserError
 from planner import admm, cli, closed_loop, mpc
 from planner.closed_loop import backfill
-from planner.gradients import make_source
-from planner.pygranso_zstep import PyGransoZStep, import_pygranso, linear_term
-from planner.zstep import SQPZStep
+from planner.pygranso_zstep import import_pygranso, linear_term
+from planner.setup import build, make, planner_config
+
+SMALL = ["paper.T_p=2"]  # a small instance: two steps
 
 
 @pytest.fixture(scope="module")
 def small():
-    """T_p = 2 on two_lane, the ego nudged towards the platoon: settings, observation, analytic predictor config."""
-    cfg = compose_cfg("planner", ["scenario=two_lane"])
-    scenario = instantiate(cfg.scenario, _convert_="all")
-    s = dataclasses.replace(cli.settings(cfg, scenario), T_p=2)
+    """T_p = 2 on two_lane, the ego nudged towards the platoon: analytic gradients' settings, observation, scenario."""
+    scenario, _, s = make("two_lane", ["gradients=analytic", *SMALL])
     z = scenario.make_world(0).z
     z[0, 1], z[0, 2] = 1.6, 0.15
-    return s, mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), dict(cfg.analytic), scenario
+    return s, mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), scenario
+
+
+def zstep(*overrides):
+    """The Z-step class with its settings (a partial) as conf/zstep/ builds it, with overrides."""
+    return build(planner_config("two_lane", [*SMALL, *overrides]).zstep)
 
 
 def z_problem(s, obs, source):
@@ -40,13 +42,15 @@ def z_problem(s, obs, source):
 @pytest.mark.parametrize("gradients,predictor", [("analytic", "auto"), ("teacher", "analytic")])
 def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
     pytest.importorskip("pygranso")
-    s, obs, analytic, _ = small
-    prob, (Z, mu, c_Z) = z_problem(s, obs, make_source(gradients, predictor, analytic=analytic))
+    s, obs, _ = small
+    source = make("two_lane", [f"gradients={gradients}", *([f"predictor={predictor}"] if predictor != "auto" else [])])[1]
+    prob, (Z, mu, c_Z) = z_problem(s, obs, source)
     lo, hi = mpc.state_box(s)
     safety = prob.zstep.safety
-    sqp = SQPZStep(prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.sqp._replace(max_iters=100, tol=1e-9),
-                   {**s.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
-    pg = PyGransoZStep(prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.pygranso._replace(maxit=100, opt_tol=1e-7))
+    sqp = zstep("zstep=sqp", "zstep.settings.max_iters=100", "zstep.settings.tol=1e-9")(
+        prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, {**s.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
+    pg = zstep("zstep=pygranso", "zstep.settings.maxit=100", "zstep.settings.opt_tol=1e-7")(
+        prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.osqp)
     Z_sqp, _, _ = sqp(Z, mu, c_Z)
     Z_pg, _, info = pg(Z, mu, c_Z)
     f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.rho, mu, c_Z))
@@ -59,15 +63,15 @@ def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
 
 def test_termination_reason_in_step_info_and_per_step_log(small):
     pytest.importorskip("pygranso")
-    s, obs, analytic, scenario = small
-    s = dataclasses.replace(s, zstep="pygranso", admm={"max_iters": 2, "tol_F": 1e-3, "tol_step": 1e-3},
-                            pygranso=s.pygranso._replace(maxit=3))
-    source = make_source("analytic", analytic=analytic)
+    _, obs, scenario = small
+    _, source, s = make("two_lane", ["gradients=analytic", "zstep=pygranso", "zstep.settings.maxit=3",
+                                     "mpc.admm.max_iters=2", *SMALL])
     prob, (Z, mu, c_Z) = z_problem(s, obs, source)
     _, _, info = prob.zstep(Z, mu, c_Z, None)
     assert info["termination"] == 4 and info["termination_reason"] == "pygranso 4: max iterations (maxit)"
-    step = lambda o, warm: mpc.admm_step(s, o, source, warm)
-    ep = closed_loop.drive(scenario.make_world(0), step, source, scenario.x_ref, scenario.target_lane, max_steps=1)
+    step = lambda o, warm: mpc.mpc_step(s, o, source, warm)
+    ep = closed_loop.drive(scenario.make_world(0), step, source, scenario.x_ref, scenario.target_lane, T_obs=8, max_steps=1,
+                           others="reactive")
     assert ep.rows[0]["zstep_stop"].startswith("pygranso ") and not ep.rows[0]["fallback"]
 
 

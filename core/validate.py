@@ -1,0 +1,274 @@
+"""Typed, range-checked job configs: one declarative schema per command, checked right after Hydra composed it.
+
+`check(cfg, "planner")` raises one UserError "key=value: must be ..." for the first value outside its schema. A schema
+maps a dotted key to a rule; a rule's `optional` lets the key be absent (keys only some config-group options have).
+"""
+import math
+from dataclasses import dataclass
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from core.jobs import UserError
+
+SEED_MAX = 2**32 - 1  # numpy and Lightning seeds are unsigned 32-bit
+
+
+@dataclass(frozen=True)
+class Int:
+    """An integer (not a bool) in [lo, hi], not one of `but`."""
+
+    lo: int | None = None
+    hi: int | None = None
+    but: tuple = ()
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, int) and not isinstance(v, bool) and _within(v, self.lo, self.hi, False, False) and v not in self.but
+
+    def allowed(self):
+        return "an integer" + _bounds(self.lo, self.hi, False, False) + (f", not {', '.join(map(str, self.but))}" if self.but else "")
+
+
+@dataclass(frozen=True)
+class Real:
+    """A number in the interval from lo to hi, each end open or closed."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    finite: bool = True  # false: +-inf allowed (never NaN)
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return _number(v) and (math.isfinite(v) if self.finite else not math.isnan(v)) and _within(v, self.lo, self.hi, self.lo_open, self.hi_open)
+
+    def allowed(self):
+        return "a number" + _bounds(self.lo, self.hi, self.lo_open, self.hi_open)
+
+
+@dataclass(frozen=True)
+class OneOf:
+    """One of a fixed set of values."""
+
+    choices: tuple
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, (str, int, float)) and not isinstance(v, bool) and v in self.choices
+
+    def allowed(self):
+        return "one of " + ", ".join(repr(c) if c == "" else str(c) for c in self.choices)
+
+
+@dataclass(frozen=True)
+class Bool:
+    """true or false."""
+
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, bool)
+
+    def allowed(self):
+        return "true or false"
+
+
+@dataclass(frozen=True)
+class Text:
+    """A non-empty string (a name or a path)."""
+
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, str) and v.strip() != ""
+
+    def allowed(self):
+        return "a non-empty string"
+
+
+@dataclass(frozen=True)
+class Range:
+    """[low, high] with lo <= low <= high <= hi (low < high when strict)."""
+
+    lo: float | None = None
+    hi: float | None = None
+    strict: bool = False
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, list) and len(v) == 2 and all(_number(x) and math.isfinite(x) for x in v) \
+            and (v[0] < v[1] if self.strict else v[0] <= v[1]) and all(_within(x, self.lo, self.hi, False, False) for x in v)
+
+    def allowed(self):
+        return f"[low, high] with low {'<' if self.strict else '<='} high, both numbers" + _bounds(self.lo, self.hi, False, False)
+
+
+@dataclass(frozen=True)
+class ListOf:
+    """A list of values each obeying `item`, `length` long if given."""
+
+    item: object
+    length: int | None = None
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, list) and (self.length is None or len(v) == self.length) and all(self.item.ok(x) for x in v)
+
+    def allowed(self):
+        return f"a list{f' of {self.length}' if self.length else ''}, each {self.item.allowed()}"
+
+
+@dataclass(frozen=True)
+class Fractions:
+    """`n` fractions in (0, 1) that sum to 1."""
+
+    n: int
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, list) and len(v) == self.n and all(_number(x) and 0 < x < 1 for x in v) and abs(sum(v) - 1) < 1e-9
+
+    def allowed(self):
+        return f"{self.n} fractions in (0, 1) summing to 1"
+
+
+def _number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _within(v, lo, hi, lo_open, hi_open):
+    return (lo is None or (v > lo if lo_open else v >= lo)) and (hi is None or (v < hi if hi_open else v <= hi))
+
+
+def _bounds(lo, hi, lo_open, hi_open):
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {lo}"
+    if hi is not None:
+        return f" {'<' if hi_open else '<='} {hi}"
+    return ""
+
+
+_MISSING = object()
+
+
+def _value(cfg, key):
+    """The resolved plain value at `key`, or _MISSING; a broken interpolation is the user's error."""
+    v = cfg
+    for part in key.split("."):
+        if not isinstance(v, DictConfig) or part not in v:
+            return _MISSING
+        try:
+            v = v[part]
+        except Exception as e:  # omegaconf raises several types for a broken interpolation
+            raise UserError(f"{key}: {type(e).__name__}: {str(e).splitlines()[0]}") from None
+    return OmegaConf.to_container(v, resolve=True) if isinstance(v, (DictConfig, ListConfig)) else v
+
+
+def check(cfg: DictConfig, schema) -> None:
+    """Raise one UserError 'key=value: must be ...' for the first key of `schema` (a name in SCHEMAS or a dict) out of range."""
+    for key, rule in (SCHEMAS[schema] if isinstance(schema, str) else schema).items():
+        v = _value(cfg, key)
+        if v is _MISSING:
+            if rule.optional:
+                continue
+            raise UserError(f"{key} is missing from the config: it must be {rule.allowed()}")
+        if v is None and rule.nullable:
+            continue
+        if not rule.ok(v):
+            shown = "null" if v is None else v
+            raise UserError(f"{key}={shown}: must be {rule.allowed()}{' or null' if rule.nullable else ''}")
+
+
+POS = Real(0, lo_open=True)  # > 0
+NONNEG = Real(0)
+PROB = Real(0, 1)
+SEED = Int(0, SEED_MAX)
+N_JOBS = Int(-1, but=(0,))  # joblib: -1 every core, never 0
+PAIR = Range(strict=True)
+COST = ("lambda_div", "lambda_v", "lambda_delta", "lambda_a", "lambda_ddelta", "lambda_da")
+
+PAPER = {  # conf/paper/table1.yaml, shared by distill, surrogate and planner
+    "paper.T_p": Int(1), "paper.rho": POS, **{f"paper.cost.{k}": NONNEG for k in COST},
+    "paper.safety.r": POS, "paper.safety.r_i": POS, "paper.safety.eps": NONNEG, "paper.lambda_s": NONNEG,
+}
+
+DATASET = {
+    "dataset.name": Text(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2),
+    "dataset.seed": SEED, "dataset.split": Fractions(3), "dataset.n_jobs": N_JOBS,
+}
+
+MAKE_DATASET = {
+    **DATASET, **PAPER, "out_dir": Text(), "plot_episodes": Int(0),
+    **{f"dataset.policy.{k}": PROB for k in ("p_keep_lane", "p_reckless")},
+    **{f"dataset.policy.{k}": Range(0) for k in ("t_start", "y_nudge", "hold", "retry_after", "need_dx", "v_change_t",
+                                                  "align_gain")},
+    **{f"dataset.policy.{k}": Range() for k in ("dv_cruise", "dv_cruise2")},
+}
+
+TRAINER = {
+    "trainer.max_epochs": Int(1), "trainer.devices": Int(1), "trainer.log_every_n_steps": Int(1),
+    "trainer.accelerator": OneOf(("cpu", "gpu", "cuda", "mps", "auto")), "trainer.enable_progress_bar": Bool(optional=True),
+    "trainer.gradient_clip_val": Real(0, optional=True, nullable=True),
+    "trainer.callbacks.early_stopping.patience": Int(0, optional=True),
+}
+
+DISTILL = {
+    **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1),
+    "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "models_dir": Text(), "run_dir": Text(),
+    "ckpt_path": Text(nullable=True), "dataset.name": Text(),
+    "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,
+    "model.teacher": OneOf(("teacher",), optional=True),
+    **{f"model.task.{k}": Real(0, optional=True) for k in ("jac_weight", "ego_jac_weight", "spectral_weight")},
+    "model.data.perturbed_copies": Int(0, optional=True), "model.data.projections": Int(1, optional=True),
+    "model.certificate.samples": Int(1, optional=True), "model.certificate.fd_step_m": Real(0, lo_open=True, optional=True),
+    "model.certificate.rho_used": Real(0, lo_open=True, optional=True), "model.certificate.T_p": Int(1, optional=True),
+}
+
+SURROGATE = {
+    **PAPER, "source": OneOf(("teacher", "student")), "method": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
+    "dataset_dir": Text(), "models_dir": Text(), "seed": SEED,
+    **{f"data.{k}": Int(1) for k in ("dataset_windows", "plan_states", "val_dataset_windows", "val_plan_states",
+                                     "test_plan_states", "batch_size")},
+    "network.hidden": Int(1), "network.depth": Int(1), "network.absolute": OneOf(("", "y", "xy")),
+    "module.lr": POS, "module.weight_decay": NONNEG,
+    "trainer.max_epochs": Int(1), "trainer.devices": Int(1), "trainer.log_every_n_steps": Int(1),
+    "timing.repeats": Int(1), "timing.budget_s": POS, "timing.predictors": ListOf(OneOf(("teacher", "student"))),
+    "states.T_p": Int(1), "states.shift_x": NONNEG, "states.shift_y": NONNEG, "states.p_shift": PROB,
+    "states.p_mid_lane_change": PROB, "states.lane_width": POS, "states.plan_y": Real(), "states.speed_factor": Range(0),
+    "states.jitter": NONNEG, "states.p_jitter": PROB,
+}
+
+PLANNER = {  # the keys of a group option other options lack are optional (zstep, gradients, method, predictor)
+    **PAPER, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
+    "episodes": Int(0), "n_jobs": N_JOBS, "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
+    "T_obs": Int(2), "merge_tol": POS, "plots": Bool(),
+    "mpc.T_p": Int(1), "mpc.rho": POS, **{f"mpc.weights.{k}": NONNEG for k in COST},
+    "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
+    "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
+    "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),
+    "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
+    **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
+    **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (
+        "trust_radius", "min_radius", "max_radius", "tol", "slack_penalty", "slack_tol", "opt_tol", "viol_ineq_tol", "mu0",
+        "infeasible_tol")},
+    "zstep.settings.mode": OneOf(("hard", "penalty"), optional=True), "zstep.settings.lambda_s": Real(0, optional=True),
+    "zstep.settings.limited_mem_size": Int(0, optional=True), "zstep.settings.warm_hessian": Bool(optional=True),
+    "zstep.settings.maxclocktime": Real(0, lo_open=True, finite=False, optional=True),
+    "gradients.h": Real(0, lo_open=True, optional=True),
+    "method.nnmpc.lengths": ListOf(POS, optional=True), "method.nnmpc.accels": ListOf(Real(), optional=True),
+    **{f"predictor.{k}": Real(0, lo_open=True, optional=True) for k in ("d_react", "s_lat", "s_ahead", "view", "s_view")},
+    "predictor.slowdown": Real(0, optional=True),
+}
+
+SCHEMAS = {"make_dataset": MAKE_DATASET, "distill": DISTILL, "surrogate": SURROGATE, "planner": PLANNER}

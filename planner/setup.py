@@ -1,0 +1,66 @@
+"""The one place a `planner` config becomes objects: the scenario, the gradient source and the MPC settings, and one
+closed-loop episode of a method; used by the `planner` command, its batch workers, the benchmarks and the tests."""
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from core.jobs import CONF_DIR, UserError
+from planner import closed_loop, mpc
+
+
+def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
+    """The `planner` config composed for `scenario` with Hydra overrides, as the console script would compose it (inside a
+    running Hydra job, by its own search path)."""
+    overrides = [f"scenario={scenario}", *overrides]
+    if GlobalHydra.instance().is_initialized():
+        return compose("planner", overrides=overrides)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose("planner", overrides=overrides)
+
+
+def build(node, **kwargs):
+    """instantiate(node, **kwargs) with plain containers; a UserError raised while building (a missing model) is
+    re-raised as itself, not wrapped in Hydra's InstantiationException."""
+    try:
+        return instantiate(node, _convert_="all", **kwargs)
+    except InstantiationException as e:
+        cause = e.__cause__
+        while cause is not None and not isinstance(cause, UserError):
+            cause = cause.__cause__
+        if cause is None:
+            raise
+        raise cause from None
+
+
+def settings(cfg: DictConfig, scenario) -> mpc.Settings:
+    """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters."""
+    # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
+    return build(cfg.mpc, _partial_=True)(y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road,
+                                          params=scenario.params)
+
+
+def setup(cfg: DictConfig):
+    """(scenario, gradient source, mpc.Settings) of a composed `planner` config."""
+    scenario = build(cfg.scenario)
+    return scenario, build(cfg.gradients), settings(cfg, scenario)
+
+
+def make(scenario: str = "two_lane", overrides=()):
+    """setup() of the `planner` config for `scenario` with Hydra overrides: (scenario, gradient source, mpc.Settings)."""
+    return setup(planner_config(scenario, overrides))
+
+
+def run_params(scenario, source, s: mpc.Settings, seed: int) -> dict:
+    """The MLflow params that name a planner run's set-up (compare groups rows by them)."""
+    return {"gradients": source.name, "zstep": s.zstep.func.name, "scenario": scenario.name, "seed": seed,
+            "predictor": source.predictor.name}
+
+
+def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None) -> closed_loop.Episode:
+    """One closed-loop episode with `method` (a key of cfg.method), seeded by `seed` (default cfg.seed)."""
+    step = build(cfg.method[method])
+    world = scenario.make_world(cfg.seed if seed is None else seed)
+    return closed_loop.drive(world, lambda obs, warm: step(s, obs, source, warm), source, scenario.x_ref,
+                             scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world)
