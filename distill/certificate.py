@@ -127,3 +127,178 @@ def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delt
     M_sub = max(1 / smallest_positive_sv(A), 1 / smallest_positive_sv(B), 1 / sigma_C)
     return {"L_1": L1, "L_2": L2, "L_3": L3, "L_g": L_g, "L_J": float(L_J), "sigma_min_C": sigma_C, "M": M_sub,
             "rho_bound": float(max(1.0, (1 + 2 * sigma_C) * L_J * M_sub))}
+
+
+# Region bounds. Over the planner's region (a box on the features P reads, in metres) every pre-activation z_l has an
+# interval (exact for the first layer, interval arithmetic after), so each neuron's GELU' and GELU'' ranges replace the
+# global sups. With K_l = d z_l / d ego (interval matrices) and g_l = d a_k / d h_l (intervals, backward):
+#   grad a_k = w_k' J_{L-1} = W_1e' (GELU'(z_1) * g_1)   (both evaluated, the tighter taken per entry),
+#   Hess a_k = sum_l K_l' diag(GELU''(z_l) * g_l) K_l,   bounded above and below in the Loewner order,
+#   Hess phi_k = s_k (tanh'(a_k) Hess a_k + tanh''(a_k) grad a_k grad a_k').
+GELU_ARGMIN = -0.7517915241  # GELU's minimiser
+TANH2_CRIT = 0.6584789485  # |a| where tanh'' has its extrema, atanh(1 / sqrt 3)
+KINDS = ("rel_x", "rel_y", "vel_x", "vel_y", "acc_x", "acc_y")
+
+
+def feature_kinds(t_obs=T_OBS, m=SLOTS):
+    """The region key of each of P's rows: others' relative last positions, last velocities, accelerations."""
+    return ["rel_x", "rel_y"] * (m - 1) + ["vel_x", "vel_y"] * m + ["acc_x", "acc_y"] * (m * (t_obs - 2))
+
+
+def feature_box(region):
+    """(lo, hi) of the 78 metric features (P with unit scales) from the region's [low, high] ranges in metres per step^k."""
+    missing = [k for k in KINDS if k not in region]
+    if missing:
+        raise UserError(f"model.certificate.region: missing {', '.join(missing)} (each a [low, high] range in metres)")
+    lo = np.array([float(region[k][0]) for k in feature_kinds()])
+    hi = np.array([float(region[k][1]) for k in feature_kinds()])
+    if not np.all(lo <= hi):
+        raise UserError("model.certificate.region: every range must be [low, high] with low <= high")
+    return lo, hi
+
+
+def metric_features():
+    """P (78, 80) with unit scales: window (m) -> relative positions (m), velocities (m/step), accelerations (m/step^2)."""
+    from distill.student import feature_map
+
+    return feature_map(1.0, 1.0, 1.0)
+
+
+def windows_from_features(F):
+    """Windows (B, T_obs, SLOTS, 2) in metres, ego's last position at the origin, whose metric features are F (B, 78)."""
+    w = (F @ np.linalg.pinv(metric_features()).T).reshape(len(F), T_OBS, SLOTS, 2)
+    return w - w[:, -1:, :1]  # P is translation-invariant, so the shift keeps F
+
+
+def in_region(windows, lo, hi, tol=1e-9):
+    """Which windows (B, T_obs, SLOTS, 2) have all their metric features inside [lo, hi]."""
+    F = np.asarray(windows, dtype=float).reshape(len(windows), -1) @ metric_features().T
+    return np.all((F >= lo - tol) & (F <= hi + tol), axis=1)
+
+
+def _gelu(a):
+    """GELU(a), float64."""
+    from scipy.special import erf
+
+    return 0.5 * a * (1.0 + erf(a / np.sqrt(2.0)))
+
+
+def _gelu1(a):
+    """GELU'(a)."""
+    from scipy.special import erf
+
+    return 0.5 * (1.0 + erf(a / np.sqrt(2.0))) + a * np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
+
+
+def _gelu2(a):
+    """GELU''(a) = pdf(a) (2 - a^2)."""
+    return np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi) * (2.0 - a * a)
+
+
+def _tanh1(a):
+    """tanh'(a)."""
+    return 1.0 - np.tanh(a) ** 2
+
+
+def _tanh2(a):
+    """tanh''(a)."""
+    t = np.tanh(a)
+    return -2.0 * t * (1.0 - t * t)
+
+
+def _range(f, lo, hi, crit):
+    """Range [min, max] of a smooth scalar f over each [lo, hi], from the end points and the critical points inside."""
+    pts = [lo, hi] + [np.clip(np.full_like(lo, c), lo, hi) for c in crit]
+    vals = np.stack([f(p) for p in pts])
+    return vals.min(0), vals.max(0)
+
+
+def _mul(alo, ahi, blo, bhi):
+    """Interval product, elementwise (broadcasting)."""
+    p = np.stack(np.broadcast_arrays(alo * blo, alo * bhi, ahi * blo, ahi * bhi))
+    return p.min(0), p.max(0)
+
+
+def _matmul(W, lo, hi):
+    """W @ [lo, hi] for an interval vector or matrix (centre-radius form, exact for one interval factor)."""
+    c, r = (lo + hi) / 2, (hi - lo) / 2
+    c, r = W @ c, np.abs(W) @ r
+    return c - r, c + r
+
+
+def preactivation_bounds(weights, lo, hi):
+    """Intervals [(zlo, zhi)] of every layer's pre-activation (last: the head's a) over metric features in [lo, hi]."""
+    W1 = weights[0][0] @ np.linalg.pinv(metric_features())  # the first layer on metric features (P has full row rank)
+    zlo, zhi = _matmul(W1, lo, hi)
+    out = [(zlo + weights[0][1], zhi + weights[0][1])]
+    for W, b in weights[1:]:
+        hlo, hhi = _range(_gelu, *out[-1], [GELU_ARGMIN])
+        zlo, zhi = _matmul(W, hlo, hhi)
+        out.append((zlo + b, zhi + b))
+    return out
+
+
+def _lambda_bounds(Klo, Khi, vlo, vhi):
+    """Upper bound of lambda_max and lower bound of lambda_min of K' diag(v) K over K in [Klo, Khi], v in [vlo, vhi]."""
+    Kc, Kr = (Klo + Khi) / 2, (Khi - Klo) / 2
+    if not Kr.any():  # K exact: K' diag(v) K lies between K' diag(vlo) K and K' diag(vhi) K
+        return np.linalg.eigvalsh(Kc.T @ (vhi[:, None] * Kc))[-1], np.linalg.eigvalsh(Kc.T @ (vlo[:, None] * Kc))[0]
+
+    def sq_norm(p):
+        """max ||diag(sqrt p) K||^2 over the interval K, p >= 0."""
+        q = np.sqrt(p)[:, None]
+        return (np.linalg.norm(q * Kc, 2) + np.linalg.norm(q * Kr, 2)) ** 2
+
+    return sq_norm(np.maximum(vhi, 0.0)), -sq_norm(np.maximum(-vlo, 0.0))
+
+
+def region_constants(weights, s, lo, hi):
+    """theta_x, theta_y (A2), L (A3) in metres over the region's metric features [lo, hi], by interval bounds."""
+    cols = ego_columns()
+    Z = preactivation_bounds(weights, lo, hi)
+    hidden = [(W, _range(_gelu1, zl, zh, [np.sqrt(2), -np.sqrt(2)]), _range(_gelu2, zl, zh, [0.0, 2.0, -2.0]))
+              for (W, _), (zl, zh) in zip(weights[:-1], Z[:-1])]
+    # forward: K_l = d z_l / d ego and J_l = d h_l / d ego, interval matrices (width, 16)
+    K, J = [], None
+    for W, (d1lo, d1hi), _ in hidden:
+        Klo, Khi = (W[:, cols], W[:, cols]) if J is None else _matmul(W, *J)
+        K.append((Klo, Khi))
+        J = _mul(d1lo[:, None], d1hi[:, None], Klo, Khi)
+    WL = weights[-1][0]
+    theta, L = np.zeros(len(WL)), np.zeros(len(WL))
+    for k, w in enumerate(WL):
+        glo, ghi = _matmul(w[None], *J)
+        g = [(w, w)]  # g_l = d a_k / d h_l, from the last hidden layer back
+        for (W, (d1lo, d1hi), _) in hidden[:0:-1]:
+            ulo, uhi = _mul(d1lo, d1hi, *g[-1])
+            g.append(_matmul(W.T, ulo, uhi))
+        g = g[::-1]
+        blo, bhi = _matmul(hidden[0][0][:, cols].T, *_mul(*hidden[0][1], *g[0]))
+        glo, ghi = np.maximum(glo, blo), np.minimum(ghi, bhi)  # both enclose the gradient
+        grad = np.maximum(np.abs(glo), np.abs(ghi)).ravel()
+        up = low = 0.0
+        for (_, _, (d2lo, d2hi)), (Klo, Khi), (gl, gh) in zip(hidden, K, g):
+            u, v = _lambda_bounds(Klo, Khi, *_mul(d2lo, d2hi, gl, gh))
+            up, low = up + u, low + v
+        alo, ahi = Z[-1][0][k:k + 1], Z[-1][1][k:k + 1]
+        t1lo, t1hi = _range(_tanh1, alo, ahi, [0.0])
+        t2lo, t2hi = _range(_tanh2, alo, ahi, [TANH2_CRIT, -TANH2_CRIT])
+        g2 = float(grad @ grad)
+        H_up = max(t1hi[0] * up, t1lo[0] * up) + max(t2hi[0], 0.0) * g2
+        H_low = min(t1hi[0] * low, t1lo[0] * low) + min(t2lo[0], 0.0) * g2
+        theta[k] = s[k] * t1hi[0] * grad.max()
+        L[k] = s[k] * max(H_up, -H_low)
+    return {"theta_x": float(theta[0::2].max()), "theta_y": float(theta[1::2].max()), "L": float(L.max())}
+
+
+def region_samples(lo, hi, n, rng):
+    """Windows whose metric features are corners of [lo, hi] (first half) and uniform inside it (second half)."""
+    corners = np.where(rng.random((n // 2, len(lo))) < 0.5, lo, hi)
+    inside = rng.uniform(lo, hi, (n - n // 2, len(lo)))
+    return windows_from_features(np.concatenate([corners, inside]))
+
+
+
+def tightest(global_c, region_c):
+    """Both bounds hold on the region, so the certificate there is the smaller of each: theta_x, theta_y, L."""
+    return {**global_c, **{k: min(global_c[k], region_c[k]) for k in ("theta_x", "theta_y", "L")}}
