@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-zstep batch clean
+.PHONY: demo test bench bench-zstep interaction batch clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -35,6 +35,11 @@ bench: $(STAMP)
 # Our SQP Z-step against the paper's PyGranso BFGS-SQP on the same states (slow: minutes per state).
 bench-zstep: $(STAMP)
 	$(BIN)/python -m bench.zstep_compare
+
+# Counterfactual interaction benchmark: every predictor's and gradient source's response to paired ego plans against the
+# world's true response on held-out branches (about a minute for cv, analytic, reference, student; teacher is slower).
+interaction: $(STAMP)
+	$(BIN)/evaluate-interaction
 
 # 1000 seeded random merges in parallel (joblib), one MLflow run per method; long on 2 cores.
 batch: $(STAMP)

@@ -1,0 +1,202 @@
+"""`evaluate-interaction`: the counterfactual interaction benchmark, one MLflow run per source (experiment `interaction`).
+
+From held-out branch states (bench/branches.py) each pair of ego plans A, B is executed in two copies of the world; the
+others' true response is their xy under B minus under A (T_p, N, 2), metres. Each source is scored on
+  - its rollout response: its Remark-2 rollout under B minus under A, the ego slot filled with the executed ego xy;
+  - its first-order response (`*_jac`): d rollout / d ego plan at A times (ego B - ego A), what the planner linearises;
+the `reference` row is the world's own drivers with their latched decisions to yield re-drawn from the prior
+(Bernoulli(eta_coop)) and the response averaged over the draws: how predictable the response is without hidden decisions.
+
+Scores over all pairs, cars, steps and both coordinates:
+  react_corr  Pearson correlation of predicted and true response components (0 when the prediction is constant);
+  react_gain  least-squares slope of predicted on true through the origin, <p, t> / <t, t>: 1 is the right magnitude
+              along the truth, 0 no response (or one uncorrelated with it);
+  react_hit   over every (pair, car) whose true response peaks above score.threshold over T_p, the share whose peak error
+              max_t |p_t - t_t| is within score.tolerance of that peak.
+
+    evaluate-interaction [sources=[cv,analytic,reference]] [states=34] [models_dir=models]
+"""
+import csv
+import logging
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from bench.branches import KINDS, Pair, execute, make_pairs, redraw
+from core import validate
+from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+
+log = logging.getLogger(__name__)
+
+REFERENCE = "reference"
+SOURCES = ("teacher", "student", "surrogate", "analytic", "cv")
+POS = validate.Real(0, lo_open=True)
+SCHEMA = {
+    "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE))), "models_dir": validate.Text(),
+    "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "T_p": validate.Int(1),
+    "branch.min_steps": validate.Int(0), "branch.max_steps": validate.Int(0), "branch.reach": POS,
+    "branch.tries": validate.Int(1), "plans.kinds": validate.ListOf(validate.OneOf(KINDS)),
+    "plans.y_push": validate.Range(0), "plans.dv": validate.Range(0), "plans.delay": validate.ListOf(validate.Int(0), 2),
+    "plans.k_y": POS, "plans.a_bounds": validate.Range(strict=True), "reference.draws": validate.Int(1),
+    "score.threshold": validate.Real(0), "score.tolerance": validate.Real(0),
+    "dataset.seed": validate.SEED, "dataset.episodes": validate.Int(1),
+}
+
+
+def load_source(name: str, models_dir):
+    """The planner's gradient source `name` over its own predictor (conf/gradients/<name>.yaml), models from models_dir;
+    a UserError if its model files are missing."""
+    from planner.setup import build, planner_config
+
+    return build(planner_config(overrides=[f"gradients={name}", f"models_dir={models_dir}"]).gradients)
+
+
+def rollout_response(source, pair: Pair):
+    """The source's rollout under plan B minus under plan A (T_p, N, 2), m, the ego slot the executed ego xy."""
+    out = source.values(pair.history, pair.ego)
+    return out[1, :, 1:] - out[0, :, 1:]
+
+
+def first_order_response(source, pair: Pair):
+    """The source's d rollout / d ego plan at plan A times (ego B - ego A): (T_p, N, 2), m."""
+    _, grads = source.jacobian(pair.history, pair.ego[0])
+    return np.einsum("tmkse,se->tmk", grads, pair.ego[1] - pair.ego[0])[:, 1:]
+
+
+def reference_response(pair: Pair, draws: int, rng: np.random.Generator):
+    """The world's own response (T_p, N, 2), m, averaged over `draws` re-draws of the drivers' decisions to yield; both
+    plans of a draw share its decisions."""
+    out = []
+    for _ in range(draws):
+        world = redraw(pair.world, rng)
+        a, b = (execute(world, u)[0] for u in pair.controls)
+        out.append(b[:, 1:] - a[:, 1:])
+    return np.mean(out, axis=0)
+
+
+def peaks(response):
+    """Peak over T_p of each car's response norm (P, N), m, from responses (P, T_p, N, 2)."""
+    return np.linalg.norm(response, axis=-1).max(axis=1)
+
+
+def scores(pred, true, threshold: float, tolerance: float) -> dict:
+    """react_corr, react_gain, react_hit of predicted against true responses, both (P, T_p, N, 2) in m (module doc)."""
+    p, t = np.ravel(pred), np.ravel(true)
+    corr = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 and t.std() > 0 else 0.0
+    gain = float(p @ t / (t @ t)) if t @ t > 0 else float("nan")
+    peak = peaks(true)
+    real = peak > threshold
+    err = peaks(np.asarray(pred) - true)
+    hit = float(np.mean(err[real] <= tolerance * peak[real])) if real.any() else float("nan")
+    return {"react_corr": corr, "react_gain": gain, "react_hit": hit}
+
+
+def predict(name: str, pairs: list[Pair], cfg) -> dict | None:
+    """{"": rollout responses, "_jac": first-order responses} (P, T_p, N, 2) of source `name`, the reference's rollout
+    only; None (with one log line) when its model files are missing."""
+    if name == REFERENCE:
+        return {"": np.stack([reference_response(p, cfg.reference.draws, np.random.default_rng([p.seed, 4])) for p in pairs])}
+    try:
+        source = load_source(name, cfg.models_dir)
+    except UserError as e:
+        log.warning(f"{name}: skipped ({e})")
+        return None
+    return {"": np.stack([rollout_response(source, p) for p in pairs]),
+            "_jac": np.stack([first_order_response(source, p) for p in pairs])}
+
+
+def scatter(path: Path, name: str, true, preds: dict, metrics: dict):
+    """Predicted against true response components (m), one panel per response kind, written to `path` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(preds), figsize=(5 * len(preds), 4.6), squeeze=False)
+    lim = 1.05 * max(float(np.abs(true).max()), *(float(np.abs(p).max()) for p in preds.values()), 0.1)
+    for ax, (suffix, pred) in zip(axes[0], preds.items()):
+        for k, (coord, color) in enumerate((("x", "tab:blue"), ("y", "tab:orange"))):
+            ax.scatter(true[..., k].ravel(), pred[..., k].ravel(), s=4, alpha=0.4, color=color, label=f"{coord} components")
+        ax.plot([-lim, lim], [-lim, lim], "k--", lw=0.8, label="predicted = true")
+        ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal")
+        ax.set_xlabel("true response (m)")
+        ax.set_ylabel("predicted response (m)")
+        kind = "first-order (J . plan difference)" if suffix == "_jac" else "rollout difference"
+        ax.set_title(f"{name}, {kind}\ncorr {metrics['react_corr' + suffix]:.3f}, gain {metrics['react_gain' + suffix]:.3f}, "
+                     f"hit {metrics['react_hit' + suffix]:.3f}", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def benchmark_stats(pairs: list[Pair], true, threshold: float) -> dict:
+    """What every run of one benchmark shares: pair count, how many (pair, car) responses are real, per kind the share of
+    pairs with a real response."""
+    real = peaks(true) > threshold  # (P, N)
+    out = {"n_pairs": len(pairs), "n_real_responses": int(real.sum()), "real_pair_share": float(real.any(axis=1).mean())}
+    for kind in sorted({p.kind for p in pairs}):
+        mask = np.array([p.kind == kind for p in pairs])
+        out[f"real_pair_share_{kind}"] = float(real[mask].any(axis=1).mean())
+    return out
+
+
+def write_table(path: Path, table: dict):
+    """interaction.csv: one row per source, its react_* scores and seconds."""
+    cols = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac", "seconds"]
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["source", *cols])
+        for name, m in table.items():
+            w.writerow([name, *(f"{m[c]:.4f}" if c in m else "" for c in cols)])
+
+
+@guarded
+def run(cfg: DictConfig) -> dict:
+    """Build the branches, score every available source, log one MLflow run each; returns {source: metrics}."""
+    import mlflow
+
+    validate.check(cfg, SCHEMA)
+    bounds = {"branch.min_steps, branch.max_steps": (cfg.branch.min_steps, cfg.branch.max_steps), "plans.delay": cfg.plans.delay}
+    for key, (low, high) in bounds.items():
+        if low > high:
+            raise UserError(f"{key} = {low}, {high}: the low end is above the high end")
+    out = writable(Path(cfg.out_dir), "out_dir")
+    scenario = instantiate(cfg.scenario, _convert_="all")
+    t0 = time.perf_counter()
+    pairs = make_pairs(scenario, dict(cfg.dataset.policy), cfg)
+    true = np.stack([p.response for p in pairs])
+    common = benchmark_stats(pairs, true, cfg.score.threshold)
+    log.info(f"{len(pairs)} pairs from {cfg.states} held-out branch states (seeds from {cfg.seed_offset}) in "
+             f"{time.perf_counter() - t0:.1f} s; pairs with a real response (> {cfg.score.threshold} m): "
+             f"{common['real_pair_share']:.1%} (" + ", ".join(f"{k[16:]} {v:.1%}" for k, v in common.items()
+                                                               if k.startswith("real_pair_share_")) + ")")
+    table = {}
+    for name in cfg.sources:
+        t0 = time.perf_counter()
+        preds = predict(name, pairs, cfg)
+        if preds is None:
+            continue
+        metrics = {f"{k}{suffix}": v for suffix, pred in preds.items()
+                   for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()}
+        metrics["seconds"] = time.perf_counter() - t0
+        with mlflow_run("interaction", cfg, run_name=f"interaction-{name}", source=name):
+            mlflow.log_metrics({**metrics, **common})
+            png = out / f"scatter_{name}.png"
+            scatter(png, name, true, preds, metrics)
+            mlflow.log_artifact(str(png))
+        table[name] = metrics
+        log.info(f"{name:>9}: " + ", ".join(f"{k} {v:.3f}" for k, v in metrics.items()))
+    write_table(out / "interaction.csv", table)
+    log.info(f"table: {out / 'interaction.csv'}")
+    return table
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="evaluate_interaction")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
