@@ -19,7 +19,7 @@ from core.jobs import CONF_DIR
 PACKAGES = ("core", "data", "distill", "surrogate", "planner", "bench")  # third-party targets keep their own defaults
 HOSTS = {"dataset": "make_dataset", "scenario": "make_dataset", "model": "distill", "trainer": "distill", "paper": "surrogate",
          "gradients": "planner", "predictor": "planner", "zstep": "planner", "method": "planner"}
-CONFIGS = ["make_dataset", "distill", "surrogate", "planner", "compare", "bench"]
+CONFIGS = ["make_dataset", "distill", "surrogate", "planner", "compare", "bench", "evaluate_interaction"]
 
 
 def extends_sibling(group, option):
