@@ -1,9 +1,12 @@
-"""What every job shares: one-line user errors, atomic writes, and MLflow runs that log their whole config."""
+"""What every job shares: one-line user errors, stop signals, atomic writes, and MLflow runs that log their whole config."""
 import contextlib
+import fcntl
 import os
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -12,19 +15,57 @@ DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")  # Hydra configs live beside the packages (editable install)
 
 
+def job_groups(choices) -> str:
+    """--help's list of a job's config groups: each group of its defaults list with its options and the chosen one."""
+    lines = []
+    for group, chosen in choices.items():
+        if not group.startswith("hydra/") and chosen is not None:
+            options = sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+            lines.append(f"{group}: {' | '.join(options)}  (now {chosen})")
+    return "\n".join(lines)
+
+
+OmegaConf.register_new_resolver("job_groups", job_groups, replace=True)  # used by conf/hydra/help/job.yaml
+
+
 class UserError(Exception):
     """A problem the user can fix (missing or corrupt file, bad value); printed as one line, never a traceback."""
 
 
+class Stopped(BaseException):
+    """The job was stopped by a signal; not an Exception, so no `except Exception` in a library swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+def _stop(signum, frame):
+    signal.signal(signum, signal.SIG_IGN)  # a second SIGTERM must not interrupt the clean-up this one starts
+    raise Stopped(signum)
+
+
 def guarded(fn):
-    """Run a job body; a UserError becomes one 'error: ...' line on stderr and exit status 2."""
+    """Run a job body; a UserError becomes one 'error: ...' line on stderr and exit status 2, SIGTERM exit 128 + 15.
+
+    SIGTERM raises Stopped (Lightning, which otherwise turns it into a clean exit 0, calls this handler after its own), so
+    the MLflow run ends KILLED and `make` stops.
+    """
 
     def run(*args, **kwargs):
+        main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _stop) if main else None
         try:
             return fn(*args, **kwargs)
         except UserError as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
+        except Stopped as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(128 + e.signum)
+        finally:
+            if main:
+                signal.signal(signal.SIGTERM, previous)
 
     run.__name__, run.__doc__ = fn.__name__, fn.__doc__
     return run
@@ -45,24 +86,62 @@ def flatten(cfg: DictConfig) -> dict:
     return out
 
 
+def tracking_uri() -> str:
+    """The MLflow store: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db in the working directory."""
+    return os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
+
+
 @contextlib.contextmanager
-def mlflow_run(experiment: str, cfg: DictConfig, run_name: str | None = None, **params):
-    """An MLflow run in `experiment` with the flattened config and `params` logged; FAILED with the error on exception."""
+def store_lock(uri: str):
+    """An exclusive lock on a SQLite store (a `.lock` file beside it), held while MLflow creates or migrates its schema.
+
+    Two jobs opening a new store at once would both run the migrations and leave it unreadable
+    (`table _alembic_tmp_tags already exists`); other stores need no lock.
+    """
+    if not uri.startswith("sqlite:///"):
+        yield
+        return
+    db = Path(uri[len("sqlite:///"):])
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with open(db.with_name(db.name + ".lock"), "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def open_experiment(experiment: str) -> str:
+    """Create the store (once, under store_lock) and the experiment if needed, make it current; returns the tracking URI."""
     import mlflow
 
-    mlflow.set_tracking_uri(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI))
-    mlflow.set_experiment(experiment)
-    with mlflow.start_run(run_name=run_name) as run:
+    uri = tracking_uri()
+    with store_lock(uri):
+        mlflow.set_tracking_uri(uri)
+        mlflow.set_experiment(experiment)
+    return uri
+
+
+@contextlib.contextmanager
+def mlflow_run(experiment: str, cfg: DictConfig, run_name: str | None = None, **params):
+    """An MLflow run in `experiment` with the flattened config and `params` logged; on exception it ends FAILED with the
+    error as a tag, or KILLED when the job was stopped (Stopped, Ctrl-C)."""
+    import mlflow
+
+    open_experiment(experiment)
+    run = mlflow.start_run(run_name=run_name)
+    try:
         flat = {**flatten(cfg), **{k: str(v) for k, v in params.items()}}
         items = list(flat.items())
         for i in range(0, len(items), 100):
             mlflow.log_params(dict(items[i : i + 100]))
         mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
-        try:
-            yield run
-        except BaseException as e:
-            mlflow.set_tag("error", f"{type(e).__name__}: {e}"[:5000])
-            raise
+        yield run
+    except BaseException as e:
+        mlflow.set_tag("error", f"{type(e).__name__}: {e}"[:5000])
+        mlflow.end_run("KILLED" if isinstance(e, (Stopped, KeyboardInterrupt)) else "FAILED")
+        raise
+    mlflow.end_run("FINISHED")
 
 
 def writable(folder: Path, key: str) -> Path:
@@ -95,6 +174,22 @@ def atomic_dir(final: Path):
         final.rename(old)
     tmp.rename(final)
     shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def staged(folder: Path):
+    """Yield a private staging folder inside `folder`; only when the block succeeds does every file written there replace
+    its namesake in `folder` (each by an atomic rename), so a job that fails anywhere leaves its old outputs intact."""
+    folder = Path(folder)
+    stage = folder / f".staging-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir(parents=True)
+    try:
+        yield stage
+        for f in sorted(stage.iterdir()):
+            os.replace(f, folder / f.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def atomic_file(final: Path, write):

@@ -251,7 +251,8 @@ SURROGATE = {
 
 PLANNER = {  # the keys of a group option other options lack are optional (zstep, gradients, method, predictor)
     **PAPER, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
-    "episodes": Int(0), "n_jobs": N_JOBS, "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
+    "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
+    "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
     "T_obs": Int(2), "merge_tol": POS, "plots": Bool(),
     "mpc.T_p": Int(1), "mpc.rho": POS, **{f"mpc.weights.{k}": NONNEG for k in COST},
     "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},

@@ -15,6 +15,7 @@ from distill.predictors import ConstantVelocity
 from distill.student import phi_jac64
 
 NAMES = ("teacher", "student", "cv")
+NETS = {"teacher": "distill.teacher.SocialTeacher", "student": "distill.student.GeluStudent"}  # the network class of each
 
 
 class TorchPredictor:
@@ -67,10 +68,18 @@ class StudentPredictor(TorchPredictor):
         return phi_jac64(self.weights, self.s, window, cols=cols)[1]
 
 
-def read_checkpoint(path: Path) -> torch.nn.Module:
-    """The network stored in a Lightning checkpoint of a distill task; a corrupt file is a UserError naming it."""
+def read_checkpoint(path: Path, name: str | None = None) -> torch.nn.Module:
+    """The network stored in a Lightning checkpoint of a distill task, checked to be `name`'s network if given; a corrupt
+    or mismatched file is a UserError naming it."""
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        target = ckpt["hyper_parameters"]["net"]["_target_"]
+    except Exception as e:  # torch raises many types for a damaged zip or pickle
+        raise UserError(f"corrupt checkpoint {path}: {type(e).__name__}: {str(e).splitlines()[0][:200]}") from None
+    if name is not None and target != NETS[name]:
+        owner = next((k for k, v in NETS.items() if v == target), target)
+        raise UserError(f"{path} holds a {owner} network ({target}), not a {name} ({NETS[name]})")
+    try:
         net = instantiate(ckpt["hyper_parameters"]["net"])
         net.load_state_dict({k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")})
     except Exception as e:  # torch raises many types for a damaged zip or pickle
@@ -87,5 +96,5 @@ def load(name: str, models_dir="models"):
     path = Path(models_dir) / f"{name}.ckpt"
     if not path.exists():
         raise UserError(f"{path} not found: run `distill model={name}`")
-    net = read_checkpoint(path)
+    net = read_checkpoint(path, name)
     return StudentPredictor(net) if name == "student" else TorchPredictor(name, net)

@@ -15,7 +15,8 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
-from core.jobs import DEFAULT_TRACKING_URI, UserError, atomic_file, mlflow_run, writable
+from core import validate
+from core.jobs import UserError, mlflow_run, staged, tracking_uri, writable
 from data import dataset
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
@@ -53,44 +54,73 @@ def fit(cfg: DictConfig, run_id, teacher):
     labels = {} if teacher is None else {"teacher": teacher}  # the student's data is relabelled by its teacher
     data = instantiate(cfg.model.data, dataset_dir=cfg.dataset_dir, **labels, _convert_="all")
     task = instantiate(cfg.model.task, _convert_="all")
-    uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
-    logger = MLFlowLogger(experiment_name="distill", tracking_uri=uri, run_id=run_id) if run_id else False
+    logger = MLFlowLogger(experiment_name="distill", tracking_uri=tracking_uri(), run_id=run_id) if run_id else False
     fitter = make_trainer(cfg.trainer, logger=logger)
-    if cfg.ckpt_path and not Path(cfg.ckpt_path).exists():
-        raise UserError(f"ckpt_path {cfg.ckpt_path} not found")
     fitter.fit(task, datamodule=data, ckpt_path=cfg.ckpt_path)
     return fitter
 
 
 def certify(cfg_cert, predictor, windows, rng):
-    """Certificate constants + rho bound, and the sampled check on data, planner-like and box windows (in metres)."""
+    """Certificate (global and on the planner's region, the smaller kept) + rho bound, and the sampled check (metres).
+
+    Every sample is checked against the global bound; those inside the region (its corners, uniform points, and the
+    data and planner-like windows that fall in it) also against the region certificate.
+    """
     box = dict(cfg_cert.box)
-    c = certificate.constants(predictor.weights, predictor.s, box)
+    glob = certificate.constants(predictor.weights, predictor.s, box)
+    lo, hi = certificate.feature_box(cfg_cert.region)
+    region = certificate.region_constants(predictor.weights, predictor.s, lo, hi)
+    c = certificate.tightest(glob, region)
     c.update(certificate.rho_bound(c, box, dict(cfg_cert.cost), cfg_cert.T_p, lambda_s=cfg_cert.lambda_s,
                                    **dict(cfg_cert.typical)))
+    c.update({f"{k}_global": glob[k] for k in ("theta_x", "theta_y", "L")})
+    c.update({f"{k}_region": region[k] for k in ("theta_x", "theta_y", "L")})
     c["rho_used"] = float(cfg_cert.rho_used)
     data = windows - windows[:, -1:, :1]  # ego-centred frame; gradients do not depend on it
     n_pert = cfg_cert.samples // 3  # drawn with replacement, each with its own perturbation
     pert = planner_like(data[rng.integers(0, len(data), n_pert)], rng, **cfg_cert.perturb)
-    boxed = box_windows(max(0, cfg_cert.samples - len(data) - n_pert), rng, box)
+    pert = pert - pert[:, -1:, :1]
+    n_region = cfg_cert.samples // 3
+    boxed = box_windows(max(0, cfg_cert.samples - len(data) - n_pert - n_region), rng, box)
     sample = np.concatenate([data, pert, boxed])
+    inside = np.concatenate([certificate.region_samples(lo, hi, n_region, rng),
+                             sample[certificate.in_region(sample, lo, hi)]])
     cols = certificate.ego_columns()
     autodiff = models.TorchPredictor("student", predictor.module).phi_jac
-    emp = certificate.sampled(autodiff, lambda w: predictor.jac_cols(w, cols), sample, cfg_cert.fd_step_m)
-    emp["emp_samples"] = len(sample)
+    jac64 = lambda w: predictor.jac_cols(w, cols)  # noqa: E731
+    emp = certificate.sampled(autodiff, jac64, inside, cfg_cert.fd_step_m)
+    emp_all = certificate.sampled(autodiff, jac64, np.concatenate([sample, inside]), cfg_cert.fd_step_m)
+    certificate.verify(glob, emp_all)
+    emp["emp_samples"] = len(sample) + len(inside)
+    emp["emp_samples_region"] = len(inside)
+    emp["region_fraction_data"] = float(certificate.in_region(data, lo, hi).mean())
+    emp["region_fraction_planner_like"] = float(certificate.in_region(pert, lo, hi).mean())
     return c, emp
 
 
-def run(cfg: DictConfig):
-    """Train or distil cfg.model.name, write models/<name>.{ckpt,onnx} (+ certificate.json); returns the metrics."""
-    name = cfg.model.name
-    dataset.read_meta(cfg.dataset_dir)  # a missing dataset stops here, naming make-dataset
+def check_inputs(cfg: DictConfig):
+    """Every input checked before any work: the config, the splits the job reads (checksums), the resumed checkpoint and
+    the student's teacher; returns the teacher (None for model=teacher)."""
+    validate.check(cfg, "distill")
+    for split in dict.fromkeys(("train", "val", cfg.eval_split)):
+        dataset.load(cfg.dataset_dir, split)  # a missing or corrupt split stops here, naming the file
     writable(cfg.models_dir, "models_dir")
+    if cfg.ckpt_path is not None:
+        if not Path(cfg.ckpt_path).is_file():
+            raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
+        models.read_checkpoint(Path(cfg.ckpt_path), cfg.model.name)
+    return models.load(cfg.model.teacher, cfg.models_dir) if cfg.model.name == "student" else None
+
+
+def run(cfg: DictConfig):
+    """Train or distil cfg.model.name, write models/<name>.{ckpt,onnx} (+ certificate.json) once everything succeeded;
+    returns the metrics."""
+    name = cfg.model.name
+    teacher = check_inputs(cfg)
     torch.set_num_threads(cfg.threads)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     rank0 = int(os.environ.get("LOCAL_RANK", 0)) == 0  # Lightning's DDP launcher re-runs this job in child processes
     with (mlflow_run("distill", cfg, run_name=name, model=name) if rank0 else nullcontext()) as run_:
-        teacher = models.load(cfg.model.teacher, cfg.models_dir) if name == "student" else None
         t0 = time.perf_counter()
         trainer = fit(cfg, run_.info.run_id if rank0 else None, teacher)
         if trainer.global_rank != 0:
@@ -113,27 +143,28 @@ def run(cfg: DictConfig):
             results.update(metrics.jac_rel_err(predictor, teacher, test["X"][:512].astype(float)))
             t1 = time.perf_counter()
             cert, emp = certify(cfg.model.certificate, predictor, test["X"].astype(float), np.random.default_rng(cfg.seed))
-            results.update({f"cert_{k}": v for k, v in cert.items() if k in ("s_x", "s_y", "theta_x", "theta_y", "L", "rho_bound")})
+            results.update({f"cert_{k}": v for k, v in cert.items() if k != "rho_used"})
             results.update(emp)
             results.update(certificate.ratios(cert, emp))
             results["cert_check_s"] = time.perf_counter() - t1
             certificate.verify(cert, emp)
 
         models_dir = Path(cfg.models_dir)
-        export_onnx(predictor.module, models_dir / f"{name}.onnx")
-        onnx = load_onnx(name, models_dir)
-        results["onnx_max_err_m"] = float(np.abs(onnx.phi(test["X"][:256]) - predictor.phi(test["X"][:256])).max())
-        results["forward_us_onnx"] = metrics.forward_us(onnx, test["X"])
-        if not results["onnx_max_err_m"] <= ONNX_TOL_M:
-            raise UserError(f"{models_dir / name}.onnx disagrees with torch by {results['onnx_max_err_m']:.2e} m")
-        atomic_file(models_dir / f"{name}.ckpt", lambda tmp: shutil.copyfile(best, tmp))
-        if cert is not None:
-            doc = {"constants_m": cert, "sampled": emp, "ratios": certificate.ratios(cert, emp),
-                   "box": OmegaConf.to_container(cfg.model.certificate, resolve=True), "checkpoint": str(models_dir / f"{name}.ckpt"),
-                   "conventions": certificate.__doc__}
-            atomic_file(models_dir / "certificate.json", lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
-            mlflow.log_artifact(str(models_dir / "certificate.json"))
-        mlflow.log_metrics({k: float(v) for k, v in results.items()})
+        with staged(models_dir) as stage:  # models/ changes only if every check below passes
+            export_onnx(predictor.module, stage / f"{name}.onnx")
+            onnx = load_onnx(name, stage)
+            results["onnx_max_err_m"] = float(np.abs(onnx.phi(test["X"][:256]) - predictor.phi(test["X"][:256])).max())
+            results["forward_us_onnx"] = metrics.forward_us(onnx, test["X"])
+            if not results["onnx_max_err_m"] <= ONNX_TOL_M:
+                raise UserError(f"{models_dir / name}.onnx disagrees with torch by {results['onnx_max_err_m']:.2e} m")
+            shutil.copyfile(best, stage / f"{name}.ckpt")
+            if cert is not None:
+                doc = {"constants_m": cert, "sampled": emp, "ratios": certificate.ratios(cert, emp),
+                       "box": OmegaConf.to_container(cfg.model.certificate, resolve=True),
+                       "checkpoint": str(models_dir / f"{name}.ckpt"), "conventions": certificate.__doc__}
+                (stage / "certificate.json").write_text(json.dumps(doc, indent=1))
+                mlflow.log_artifact(str(stage / "certificate.json"))
+            mlflow.log_metrics({k: float(v) for k, v in results.items()})
     log.info(summary(name, table, results, cert))
     return results
 
@@ -150,8 +181,13 @@ def summary(name, table, r, cert):
         lines.append(f"jac_rel_err {r['jac_rel_err']:.4f} (w.r.t. the ego's inputs {r['jac_rel_err_ego']:.4f}) vs teacher autodiff")
         lines.append(f"certificate (m): s_x {cert['s_x']:.2f}  s_y {cert['s_y']:.2f}  theta_x {cert['theta_x']:.4g}  "
                      f"theta_y {cert['theta_y']:.4g}  L {cert['L']:.4g}")
-        lines.append(f"sampled over {r['emp_samples']} windows: theta_x {r['emp_theta_x_max']:.4g} (ratio {r['ratio_theta_x']:.3f})  "
+        lines.append(f"sampled over {r['emp_samples_region']} windows in the region: theta_x {r['emp_theta_x_max']:.4g} (ratio {r['ratio_theta_x']:.3f})  "
                      f"theta_y {r['emp_theta_y_max']:.4g} (ratio {r['ratio_theta_y']:.3f})  L {r['emp_L_max']:.4g} (ratio {r['ratio_L']:.3f})")
-        lines.append(f"Theorem 1: rho > {cert['rho_bound']:.4g} (L_J {cert['L_J']:.4g}, M {cert['M']:.3g}, "
-                     f"sigma_min(C) {cert['sigma_min_C']:.3g}); the planner uses rho = {cert['rho_used']:g}")
+        lines.append("  global (weights' norms): " + "  ".join(f"{k} {cert[k + '_global']:.4g}" for k in ("theta_x", "theta_y", "L"))
+                     + "; on the region: " + "  ".join(f"{k} {cert[k + '_region']:.4g}" for k in ("theta_x", "theta_y", "L"))
+                     + f" (region holds {r['region_fraction_data']:.1%} of data, "
+                     f"{r['region_fraction_planner_like']:.1%} of planner-like windows)")
+        lines.append(f"Theorem 1: rho > {cert['rho_bound']:.4g} = (1 + 2 sigma_min(C)) L_J M with L_J {cert['L_J']:.4g} "
+                     f"(L_1 {cert['L_1']:.4g}, L_2 {cert['L_2']:.3g}, L_3 {cert['L_3']:.3g}, L_g {cert['L_g']:.4g}), "
+                     f"M {cert['M']:.3g}, sigma_min(C) {cert['sigma_min_C']:.3g}; the planner uses rho = {cert['rho_used']:g}")
     return "\n".join(lines)

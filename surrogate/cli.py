@@ -13,7 +13,8 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig
 
-from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+from core import validate
+from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, staged, writable
 from data import dataset
 from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
@@ -23,7 +24,6 @@ from surrogate.export import export
 from surrogate.network import Fused
 from surrogate.training import JacobianData, rel_err
 
-METHODS = ("autodiff", "central")
 log = logging.getLogger(__name__)
 
 
@@ -37,9 +37,8 @@ def instantiate_user(node, **kwargs):
         raise
 
 
-def windows_and_jacobians(cfg, source, sampler, split, n_dataset, n_states, rng):
-    """(windows, J) of one split: up to n_dataset dataset windows plus every rollout window of n_states planning states."""
-    X = dataset.load(cfg.dataset_dir, split)["X"].astype(np.float64)
+def windows_and_jacobians(cfg, source, sampler, X, n_dataset, n_states, rng):
+    """(windows, J) of one split's windows X: up to n_dataset of them plus every rollout window of n_states planning states."""
     own = X[rng.permutation(len(X))[:n_dataset]]
     history, ego_future = sampler.sample(X[rng.integers(0, len(X), n_states)], rng)
     W = np.concatenate([own, jacobians.planner_windows(source.phi, history, ego_future)])
@@ -67,19 +66,21 @@ def time_autodiff(cfg, window):
 
 @guarded
 def run(cfg: DictConfig) -> dict:
-    """Make the data, train, export, evaluate; returns the logged metrics."""
-    if cfg.method not in METHODS:
-        raise UserError(f"method={cfg.method}: choose one of {', '.join(METHODS)}")
+    """Check every input, make the data, train, export, evaluate; models/surrogate.onnx is replaced only when all succeeded.
+    Returns the logged metrics."""
+    validate.check(cfg, "surrogate")
     writable(cfg.models_dir, "models_dir")
+    X = {split: dataset.load(cfg.dataset_dir, split)["X"].astype(np.float64) for split in ("train", "val", "test")}
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # the network's initialisation and batch order
     rng = np.random.default_rng(cfg.seed)
     source = instantiate_user(cfg.predictor)
     if cfg.fused and not hasattr(source, "module"):
         raise UserError(f"fused=true exports the source's torch network, and {cfg.source} has none: use fused=false")
     sampler = instantiate(cfg.states)
-    with mlflow_run("surrogate", cfg, run_name=f"surrogate-{cfg.source}", source=cfg.source) as run:
-        train = windows_and_jacobians(cfg, source, sampler, "train", cfg.data.dataset_windows, cfg.data.plan_states, rng)
-        val = windows_and_jacobians(cfg, source, sampler, "val", cfg.data.val_dataset_windows, cfg.data.val_plan_states, rng)
+    with mlflow_run("surrogate", cfg, run_name=f"surrogate-{cfg.source}", source=cfg.source) as run, \
+            staged(cfg.models_dir) as stage:
+        train = windows_and_jacobians(cfg, source, sampler, X["train"], cfg.data.dataset_windows, cfg.data.plan_states, rng)
+        val = windows_and_jacobians(cfg, source, sampler, X["val"], cfg.data.val_dataset_windows, cfg.data.val_plan_states, rng)
         T_obs, M = train[0].shape[1:3]
         net = instantiate(cfg.network, T_obs=T_obs, M=M)
         net.fit_normalisation(*train)
@@ -90,11 +91,10 @@ def run(cfg: DictConfig) -> dict:
 
         net = net.eval()
         module = Fused(net, copy.deepcopy(source.module)) if cfg.fused else net
-        path = Path(cfg.models_dir) / "surrogate.onnx"
-        export(copy.deepcopy(module), path, T_obs, M, cfg.source)
-        surrogate = models.load(cfg.models_dir, T_obs, M)
+        export(copy.deepcopy(module), stage / "surrogate.onnx", T_obs, M, cfg.source)
+        surrogate = models.load(stage, T_obs, M)
 
-        test = dataset.load(cfg.dataset_dir, "test")["X"].astype(np.float64)
+        test = X["test"]
         history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
         W = jacobians.planner_windows(source.phi, history, ego_future)  # (n * T_p, T_obs, SLOTS, 2), state-major
         J, J_hat = jacobians.autodiff(source, W), surrogate.jac(W)
@@ -120,7 +120,8 @@ def run(cfg: DictConfig) -> dict:
         metrics.update(time_autodiff(cfg, window))
         metrics.update({"n_train": len(train[0]), "n_val": len(val[0]), "n_test": len(W)})
         mlflow.log_metrics(metrics)
-        mlflow.log_artifact(str(path))
+        mlflow.log_artifact(str(stage / "surrogate.onnx"))
+    path = Path(cfg.models_dir) / "surrogate.onnx"
 
     log.info(f"surrogate of {cfg.source} ({cfg.method}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
              f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
