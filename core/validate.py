@@ -236,7 +236,7 @@ DISTILL = {
 }
 
 SURROGATE = {
-    **PAPER, "source": OneOf(("teacher", "student")), "method": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
+    **PAPER, "source": OneOf(("teacher", "student")), "jacobian": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
     "dataset_dir": Text(), "models_dir": Text(), "seed": SEED,
     **{f"data.{k}": Int(1) for k in ("dataset_windows", "plan_states", "val_dataset_windows", "val_plan_states",
                                      "test_plan_states", "batch_size")},

@@ -42,7 +42,7 @@ def windows_and_jacobians(cfg, source, sampler, X, n_dataset, n_states, rng):
     own = X[rng.permutation(len(X))[:n_dataset]]
     history, ego_future = sampler.sample(X[rng.integers(0, len(X), n_states)], rng)
     W = np.concatenate([own, jacobians.planner_windows(source.phi, history, ego_future)])
-    if cfg.method == "autodiff":
+    if cfg.jacobian == "autodiff":
         return W, jacobians.autodiff(source, W)
     return W, jacobians.central(source.phi, W, cfg.central_h)
 
@@ -123,7 +123,7 @@ def run(cfg: DictConfig) -> dict:
         mlflow.log_artifact(str(stage / "surrogate.onnx"))
     path = Path(cfg.models_dir) / "surrogate.onnx"
 
-    log.info(f"surrogate of {cfg.source} ({cfg.method}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
+    log.info(f"surrogate of {cfg.source} ({cfg.jacobian}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
              f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
              f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "
              f"others' reaction d p_i/dZ rel err {metrics['react_rel_err']:.3f} (mean-J {metrics['react_rel_err_mean']:.3f}); "
