@@ -1,9 +1,13 @@
 """`make bench`: wall time (ms) of one ADMM-NNMPC step per gradient source on the saved planning states, single-threaded,
-beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls), logged to MLflow (`bench`).
+beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls) and the full-NLP baseline
+(`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
+(cv, analytic, student), with ADMM's speed-up over it and the cost gap; logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
-Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair.
+Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair. The cost gap
+is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
+own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out below IPOPT's).
 """
 import logging
 import time
@@ -17,10 +21,12 @@ from bench.states import planning_states, settings
 from core.jobs import CONF_DIR, UserError, guarded, mlflow_run
 from core.rollout import ego_xy
 from planner import mpc
-from planner.setup import make
+from planner.setup import build, make, planner_config
 
 log = logging.getLogger(__name__)
 RATIOS = (("teacher", "surrogate"), ("teacher", "student"), ("surrogate", "floor"), ("student", "floor"))
+IPOPT = ("cv", "analytic", "student")  # the predictors planner.ipopt writes as CasADi expressions
+GAP_FLOOR = 1e-3  # J below which a relative cost gap means nothing (the plan is at the references)
 
 
 class Frozen:
@@ -69,7 +75,7 @@ def sources(models_dir) -> dict:
     """Every gradient source available: teacher (autodiff), student, surrogate, fd over the trained models; over the
     analytic predictor (with its exact Jacobians as `analytic`) for the ones whose models are missing."""
     out = {}
-    for name in ("teacher", "student", "surrogate", "fd", "analytic"):
+    for name in ("teacher", "student", "surrogate", "fd", "analytic", "cv"):
         try:
             out[name] = source(name, models_dir)  # onnxruntime sessions run on one thread already
         except UserError as e:
@@ -81,36 +87,66 @@ def sources(models_dir) -> dict:
     return out
 
 
-def time_steps(srcs: dict, states, repeats: int) -> dict:
-    """{name: (ms (n_states,), ADMM iterations, fallbacks)}: the fastest of `repeats` runs of each step, round-robin."""
+def ipopt_steps(srcs: dict) -> dict:
+    """{ipopt-<name>: (step, source)}: solver=ipopt's step (conf/solver/ipopt.yaml) for each source in IPOPT; none
+    without CasADi."""
+    try:
+        from planner.ipopt import import_casadi
+
+        import_casadi()
+    except UserError as e:
+        log.info(f"ipopt: {e}; skipped")
+        return {}
+    step = build(planner_config("two_lane", ["solver=ipopt"]).solver.step)
+    return {f"ipopt-{name}": (step, srcs[name]) for name in IPOPT if name in srcs}
+
+
+def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> dict:
+    """{name: (ms (n_states,), iterations, fallbacks, J (n_states,), NaN where it fell back)}: the fastest of `repeats`
+    runs of each step, round-robin; srcs are ADMM's, others {name: (step, source)} another solver's."""
     reference = srcs["teacher"]
-    ms = {name: [] for name in [*srcs, "floor"]}
+    ms = {name: [] for name in [*srcs, "floor", *(others or {})]}
     iters = {name: [] for name in ms}
+    J = {name: [] for name in ms}
     falls = {name: 0 for name in ms}
     for state in states:
         s = settings(state.scenario)
-        per_state = {**srcs, "floor": freeze(reference, s, state)}
-        for name, src in per_state.items():
+        per_state = {name: (mpc.mpc_step, src) for name, src in srcs.items()}
+        per_state.update({"floor": (mpc.mpc_step, freeze(reference, s, state)), **(others or {})})
+        for name, (step, src) in per_state.items():
             best = np.inf
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                result = mpc.mpc_step(s, state.obs, src, state.warm)
+                result = step(s, state.obs, src, state.warm)
                 best = min(best, 1e3 * (time.perf_counter() - t0))
             ms[name].append(best)
             iters[name].append(result.iters)
+            J[name].append(np.nan if result.fallback else result.J)
             falls[name] += bool(result.fallback)
-    return {name: (np.array(ms[name]), float(np.mean(iters[name])), falls[name]) for name in ms}
+    return {name: (np.array(ms[name]), float(np.mean(iters[name])), falls[name], np.array(J[name])) for name in ms}
+
+
+def cost_gap(J_admm, J_ipopt) -> np.ndarray:
+    """(J_ADMM - J_IPOPT) / |J_IPOPT| on the states where both planned (no fallback) and J_IPOPT >= GAP_FLOOR."""
+    ok = np.isfinite(J_admm) & np.isfinite(J_ipopt) & (np.abs(J_ipopt) >= GAP_FLOOR)
+    return (J_admm[ok] - J_ipopt[ok]) / np.abs(J_ipopt[ok])
 
 
 def summary(timings: dict) -> dict:
     """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_iters_mean, <source>_fallbacks and the ratios."""
     out = {}
-    for name, (ms, iters, falls) in timings.items():
+    for name, (ms, iters, falls, _) in timings.items():
         out.update({f"{name}_ms_median": float(np.median(ms)), f"{name}_ms_p95": float(np.percentile(ms, 95)),
                     f"{name}_iters_mean": iters, f"{name}_fallbacks": float(falls)})
     for a, b in RATIOS:
         if a in timings and b in timings:
             out[f"ratio_{a}_{b}"] = out[f"{a}_ms_median"] / out[f"{b}_ms_median"]
+    for name in IPOPT:
+        if f"ipopt-{name}" in timings:
+            gap = cost_gap(timings[name][3], timings[f"ipopt-{name}"][3])
+            out[f"ratio_ipopt_{name}"] = out[f"ipopt-{name}_ms_median"] / out[f"{name}_ms_median"]
+            out.update({f"gap_{name}_median": float(np.median(gap)) if len(gap) else np.nan, f"gap_{name}_states": float(len(gap)),
+                        f"gap_{name}_ipopt_lower": float(np.sum(gap > 0))})
     return out
 
 
@@ -118,14 +154,21 @@ def table(timings: dict, srcs: dict, metrics: dict, repeats: int, states) -> str
     """The printed result: one line per source (and the floor), then the ratios."""
     lines = [f"{len(states)} planning states ({', '.join(sorted({st.scenario for st in states}))}), one thread, "
              f"fastest of {repeats}",
-             f"{'source':>10} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
+             f"{'source':>14} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
-        pred = srcs[name].predictor.name if name in srcs else "frozen"
-        lines.append(f"{name:>10} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
+        pred = srcs[name.removeprefix("ipopt-")].predictor.name if name.removeprefix("ipopt-") in srcs else "frozen"
+        lines.append(f"{name:>14} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
     for a, b in RATIOS:
         key = f"ratio_{a}_{b}"
         lines.append(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
+    for name in IPOPT:
+        if f"ratio_ipopt_{name}" in metrics:
+            m = lambda k: metrics[k.format(name)]
+            lines.append(f"ADMM vs IPOPT, {name}: {m('{}_ms_median'):.1f} vs {m('ipopt-{}_ms_median'):.1f} ms median, "
+                         f"IPOPT/ADMM time {m('ratio_ipopt_{}'):.2f} (> 1: ADMM faster); cost gap (J_ADMM - J_IPOPT)/J_IPOPT median "
+                         f"{m('gap_{}_median'):+.2%} on {m('gap_{}_states'):.0f} states both planned "
+                         f"(IPOPT lower on {m('gap_{}_ipopt_lower'):.0f})")
     return "\n".join(lines)
 
 
@@ -144,9 +187,13 @@ def run(cfg: DictConfig) -> dict:
         states = planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario, gradients=cfg.states.gradients,
                                  seed=cfg.states.seed)
         srcs = sources(cfg.models_dir)
-        for src in srcs.values():  # warm-up: first calls pay for imports, allocations and onnxruntime's graph setup
-            mpc.mpc_step(settings(states[0].scenario), states[0].obs, src, states[0].warm)
-        timings = time_steps(srcs, states, cfg.step_time.repeats)
+        others = ipopt_steps(srcs)
+        # warm-up: first calls pay for imports, allocations, onnxruntime's graph setup and building the IPOPT NLPs
+        for step, src in [(mpc.mpc_step, src) for src in srcs.values()] + list(others.values()):
+            for scenario in sorted({st.scenario for st in states}):
+                st = next(st for st in states if st.scenario == scenario)
+                step(settings(scenario), st.obs, src, st.warm)
+        timings = time_steps(srcs, states, cfg.step_time.repeats, others)
     metrics = summary(timings)
     log.info("\n%s", table(timings, srcs, metrics, cfg.step_time.repeats, states))
     log_bench("step_time", cfg, srcs, len(states), metrics)
