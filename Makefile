@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-zstep interaction batch clean
+.PHONY: demo test bench bench-zstep interaction batch results results-full clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -45,5 +45,15 @@ interaction: $(STAMP)
 batch: $(STAMP)
 	$(BIN)/planner scenario=random episodes=1000 gradients=analytic method=both
 
+# Every table and figure of the README's Results section from scratch (dataset, 3 trainings per model, held-out batches of
+# every gradient source, Table II scenarios, interaction benchmark, step-time bench): results/README-results.md and
+# results/*.png. About an hour on 2 cores; `make results-full` is the preset for a bigger machine (or a Ray cluster:
+# `results results_preset=full backend=ray ray.address=auto`).
+results: $(STAMP)
+	$(BIN)/results results_preset=small
+
+results-full: $(STAMP)
+	$(BIN)/results results_preset=full
+
 clean:
-	rm -rf outputs multirun mlflow.db mlruns models data/small data/large
+	rm -rf outputs multirun mlflow.db mlruns models data/small data/large results/*/

@@ -30,31 +30,46 @@ def rollout(phi, history, ego_future):
     return xp.stack(out, axis=1)
 
 
+def chain_rule(J):
+    """d values / d ego plan (..., T_p, SLOTS, 2, T_p, 2) of a rollout from the local Jacobians J (..., T_p, SLOTS*2,
+    T_obs*SLOTS*2) of the T_p windows it visits (rows: next xy flattened, columns: the window flattened, C order); exact
+    through the window shift, the ego slot's derivative the identity on its own step. numpy or torch alike."""
+    xp = _xp(J)
+    *lead, t_p, rows, cols = J.shape
+    batch = 0.0 * J[..., :1, :1, 0]  # zeros (..., 1, 1): broadcasting with it gives the leading axes, traceable by ONNX
+    dwindow = batch + xp.zeros((cols, 2 * t_p), dtype=J.dtype)  # d window / d ego plan, rows as J's columns
+    units = xp.zeros((t_p, 2, 2 * t_p), dtype=J.dtype)  # d ego xy(tau) / d ego plan
+    for tau in range(t_p):
+        units[tau, 0, 2 * tau] = units[tau, 1, 2 * tau + 1] = 1.0
+    out = []
+    for tau in range(t_p):
+        dnext = xp.concatenate([batch + units[tau], (J[..., tau, :, :] @ dwindow)[..., 2:, :]], axis=-2)
+        out.append(dnext)
+        dwindow = xp.concatenate([dwindow[..., rows:, :], dnext], axis=-2)
+    out = xp.stack(out, axis=-3)  # (..., T_p, SLOTS*2, 2*T_p)
+    if xp is np:
+        return out.reshape(*lead, t_p, rows // 2, 2, t_p, 2)
+    return out.unflatten(-1, (t_p, 2)).unflatten(-3, (rows // 2, 2))  # a traced reshape would fix the batch size
+
+
 def rollout_jacobian(phi_jac, history, ego_future):
     """Rollout values (T_p, SLOTS, 2) and their derivative w.r.t. the ego plan (T_p, SLOTS, 2, T_p, 2), for one planning state.
 
     phi_jac(window (1, T_obs, SLOTS, 2)) -> (next (1, SLOTS, 2), J (1, SLOTS*2, T_obs*SLOTS*2)) supplies the local values and
-    Jacobians (autodiff, analytic, a surrogate, or differences); the chain rule through the window shift is exact.
+    Jacobians (autodiff, analytic, a surrogate, or differences); composed by chain_rule.
     """
     history = np.asarray(history, dtype=float)
     ego_future = np.asarray(ego_future, dtype=float)
     t_obs, m, _ = history.shape
-    t_p = len(ego_future)
-    window = history.copy()
-    dwindow = np.zeros((t_obs, m, 2, t_p, 2))  # d window / d ego_future
-    values, grads = np.zeros((t_p, m, 2)), np.zeros((t_p, m, 2, t_p, 2))
-    for tau in range(t_p):
+    window, values, Js = history, [], []
+    for tau in range(len(ego_future)):
         nxt, J = phi_jac(window[None])
         nxt = np.asarray(nxt, dtype=float).reshape(m, 2).copy()
-        J = np.asarray(J, dtype=float).reshape(m * 2, t_obs * m * 2)
-        dnext = (J @ dwindow.reshape(t_obs * m * 2, t_p * 2)).reshape(m, 2, t_p, 2)
         nxt[0] = ego_future[tau]
-        dnext[0] = 0.0
-        dnext[0, 0, tau, 0] = dnext[0, 1, tau, 1] = 1.0
-        values[tau], grads[tau] = nxt, dnext
+        values.append(nxt)
+        Js.append(np.asarray(J, dtype=float).reshape(m * 2, t_obs * m * 2))
         window = np.concatenate([window[1:], nxt[None]], axis=0)
-        dwindow = np.concatenate([dwindow[1:], dnext[None]], axis=0)
-    return values, grads
+    return np.stack(values), chain_rule(np.stack(Js))
 
 
 def ego_xy(Z, T_p):

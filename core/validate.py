@@ -258,6 +258,10 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
     "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
     "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),
+    "mpc.osqp.adaptive_rho_interval": Int(0, optional=True), "mpc.box_qp": OneOf(("closed_form", "osqp")),
+    "mpc.admm.balance_rho.enabled": Bool(), **{f"mpc.admm.balance_rho.{k}": Real(1, lo_open=True) for k in ("mu", "tau")},
+    **{f"mpc.admm.balance_rho.{k}": POS for k in ("rho_min", "rho_max")},
+    "zstep.settings.reuse_radius": Real(0, optional=True), "gradients.rollout": Bool(optional=True),
     "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (

@@ -1,11 +1,19 @@
 """Batch statistics: `planner scenario=random episodes=N` drives N seeded episodes (seeds seed .. seed+N-1) in parallel
-with joblib and logs one MLflow run per method: rates, means, step-time percentiles, a per-episode CSV, histograms.
+and logs one MLflow run per method: rates and means with 95% confidence intervals, step-time percentiles, a per-episode
+CSV, histograms.
+
+Episodes run on local joblib processes (`backend=loky`, the default) or on a Ray cluster (`backend=ray`, joblib's Ray
+backend; `ray.address=auto` or `ray://host:10001` joins a running cluster, null starts a local instance). Either way an
+episode depends only on its seed, so both give the same per-episode results.
 
 An episode that raises is recorded as a crash with its message in the CSV; the batch goes on. Rates and means are
-over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size.
+over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size. Intervals: Wilson for
+`merged` and `collision` (`merged_lo`, `merged_hi`, ...), Student t for the means of t_merge, C_max and fallbacks.
 """
+import contextlib
 import csv
 import logging
+import os
 import sys
 
 import matplotlib
@@ -13,10 +21,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from joblib import Parallel, delayed  # noqa: E402
+from joblib import Parallel, delayed, effective_n_jobs, parallel_config  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
+from tqdm.auto import tqdm  # noqa: E402
 
-from core.jobs import mlflow_run  # noqa: E402
+from core.jobs import UserError, mlflow_run  # noqa: E402
 from planner import report, setup  # noqa: E402
 
 FIGURES = {"t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
@@ -53,17 +62,53 @@ def episode(cfg_dict: dict, method: str, seed: int):
 
 
 def aggregate(rows, step_ms, iters) -> dict:
-    """The run's metrics from the per-episode rows and the pooled per-step wall times (ms) and iterations."""
+    """The run's metrics from the per-episode rows and the pooled per-step wall times (ms) and iterations, with 95%
+    intervals `<metric>_lo`, `<metric>_hi` (module doc)."""
     done = [r for r in rows if not r["crash"]]
     col = lambda k: np.array([r[k] for r in done], float)
     merged = col("merged").astype(bool) if done else np.zeros(0, bool)
     safe = lambda f, a: float(f(a)) if len(a) else float("nan")
-    return {"episodes": float(len(rows)), "crashes": float(len(rows) - len(done)), "nans": float(sum(r["nan"] for r in rows)),
-            "merged": safe(np.mean, merged), "collision": safe(np.mean, col("collision") if done else []),
-            "t_merge": safe(np.mean, col("t_merge")[merged] if done else []), "C_max": safe(np.nanmean, col("C_max") if done else []),
-            "d_min_m": safe(np.min, col("d_min_m") if done else []), "fallbacks": safe(np.mean, col("fallbacks") if done else []),
-            "step_ms_median": safe(np.median, step_ms), "step_ms_p95": safe(lambda a: np.percentile(a, 95), step_ms),
-            "admm_iters_mean": safe(np.mean, iters)}
+    out = {"episodes": float(len(rows)), "crashes": float(len(rows) - len(done)), "nans": float(sum(r["nan"] for r in rows)),
+           "d_min_m": safe(np.min, col("d_min_m") if done else []),
+           "step_ms_median": safe(np.median, step_ms), "step_ms_p95": safe(lambda a: np.percentile(a, 95), step_ms),
+           "admm_iters_mean": safe(np.mean, iters)}
+    for k in ("merged", "collision"):
+        hits = col(k) if done else np.zeros(0)
+        out[k] = safe(np.mean, hits)
+        out[f"{k}_lo"], out[f"{k}_hi"] = report.wilson(float(hits.sum()), len(hits))
+    for k, values in (("t_merge", col("t_merge")[merged] if done else []), ("C_max", col("C_max") if done else []),
+                      ("fallbacks", col("fallbacks") if done else [])):
+        out[k], out[f"{k}_lo"], out[f"{k}_hi"] = report.mean_ci(values)
+    return out
+
+
+def quiet() -> bool:
+    """No progress bars under CI (the CI variable set, as every CI service does) or when stderr is not a terminal."""
+    return bool(os.environ.get("CI")) or not sys.stderr.isatty()
+
+
+def progress(iterable, total: int, desc: str):
+    """`iterable` with a tqdm bar on stderr (none when quiet())."""
+    return tqdm(iterable, total=total, desc=desc, unit="ep", disable=quiet(), dynamic_ncols=True)
+
+
+@contextlib.contextmanager
+def backend(cfg):
+    """joblib's backend for cfg.backend: local processes (loky), or Ray (joins cfg.ray.address, or starts a local
+    instance once per process when it is null)."""
+    if cfg.backend == "loky":
+        yield
+        return
+    try:
+        import ray
+        from ray.util.joblib import register_ray
+    except ImportError:
+        raise UserError("backend=ray needs Ray: pip install -e '.[ray]'") from None
+    if not ray.is_initialized():
+        ray.init(address=cfg.ray.address, include_dashboard=False, log_to_driver=False)
+    register_ray()
+    with parallel_config(backend="ray"):
+        yield
 
 
 def write_csv(rows, path):
@@ -95,10 +140,23 @@ def histograms(rows, step_ms, out_dir, tag, title):
 
 
 def drive_all(cfg, method: str) -> list:
-    """[episode(...)] for seeds cfg.seed .. cfg.seed + cfg.episodes - 1, over cfg.n_jobs joblib processes."""
+    """[episode(...)] for seeds cfg.seed .. cfg.seed + cfg.episodes - 1, over cfg.n_jobs workers of cfg.backend, in seed
+    order, with a progress bar."""
     cfg_dict = OmegaConf.to_container(cfg, resolve=True)
-    seeds = range(cfg.seed, cfg.seed + cfg.episodes)
-    return Parallel(n_jobs=cfg.n_jobs)(delayed(episode)(cfg_dict, method, seed) for seed in seeds)
+    seeds = list(range(cfg.seed, cfg.seed + cfg.episodes))
+    tasks = lambda part: (delayed(episode)(cfg_dict, method, seed) for seed in part)
+    out = []
+    with backend(cfg), progress(None, len(seeds), f"{method} episodes") as bar:
+        if cfg.backend == "loky":  # results stream back one by one
+            for o in Parallel(n_jobs=cfg.n_jobs, return_as="generator")(tasks(seeds)):
+                out.append(o)
+                bar.update()
+        else:  # Ray's joblib backend returns whole lists only: progress in chunks of a few episodes per worker
+            chunk = 4 * effective_n_jobs(cfg.n_jobs)
+            for i in range(0, len(seeds), chunk):
+                out += Parallel(n_jobs=cfg.n_jobs)(tasks(seeds[i : i + chunk]))
+                bar.update(len(seeds[i : i + chunk]))
+    return out
 
 
 def record(cfg, scenario, source, s, method: str, out: list, out_dir) -> dict:
@@ -114,17 +172,18 @@ def record(cfg, scenario, source, s, method: str, out: list, out_dir) -> dict:
     write_csv(rows, csv_path)
     plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
     with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario.name}", method=method,
-                    episodes=len(rows), **setup.run_params(scenario, source, s, cfg.seed)):
+                    episodes=len(rows), **setup.run_params(scenario, source, s, cfg.seed, cfg.solver.name)):
         mlflow.log_metrics(r)
         mlflow.log_artifact(str(csv_path))
         for p in plots:
             mlflow.log_artifact(str(p), "plots")
     for e in sorted({row["error"] for row in rows if row["crash"]}):
         log.info(f"[{method}] crash: {e}")
-    log.info(f"[{method}] {title}: merged {r['merged']:.1%}, collision {r['collision']:.1%}, t_merge {r['t_merge']:.1f} "
-          f"steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / {r['step_ms_p95']:.1f} p95, "
-          f"{r['fallbacks']:.2f} fallbacks per episode, {r['crashes']:.0f} crashes, {r['nans']:.0f} NaN episodes; "
-          f"outputs in {out_dir}")
+    ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
+    log.info(f"[{method}] {title} (95% intervals): merged {ci('merged', '.1%')}, collision {ci('collision', '.1%')}, "
+             f"t_merge {ci('t_merge', '.1f')} steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / "
+             f"{r['step_ms_p95']:.1f} p95, fallbacks per episode {ci('fallbacks', '.2f')}, {r['crashes']:.0f} crashes, "
+             f"{r['nans']:.0f} NaN episodes; outputs in {out_dir}")
     return r
 
 

@@ -3,13 +3,14 @@
 `planner --gradients=surrogate` (or `--gradients surrogate`) is the same as the Hydra override `gradients=surrogate`.
 """
 import logging
+import os
 import sys
 from pathlib import Path
 
 import hydra
 import mlflow
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from core import validate
 from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
@@ -17,6 +18,7 @@ from planner import batch, report
 from planner.setup import drive, run_params, setup
 
 log = logging.getLogger(__name__)
+OmegaConf.register_new_resolver("pid", os.getpid, replace=True)  # hydra.run.dir: one folder per process
 
 
 def translate(argv):
@@ -57,7 +59,7 @@ def run(cfg: DictConfig) -> dict:
         return batch.run(cfg, scenario, source, s, methods, out_dir)
     episodes = {m: drive(cfg, scenario, source, s, m) for m in methods}
     title = f"{scenario.name}, gradients={source.name}, predictor={source.predictor.name}, world={cfg.world}"
-    shared = report.figures(episodes, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) \
+    shared = report.figures(episodes, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title, animation=False) \
         if cfg.plots and len(episodes) > 1 else []
     results = {}
     for m, ep in episodes.items():
@@ -65,7 +67,7 @@ def run(cfg: DictConfig) -> dict:
         csv_path = out_dir / f"steps_{m}.csv"
         report.write_csv(ep, csv_path)
         with mlflow_run("planner", cfg, run_name=f"{m}-{source.name}-{scenario.name}", method=m,
-                        **run_params(scenario, source, s, cfg.seed)):
+                        **run_params(scenario, source, s, cfg.seed, cfg.solver.name)):
             mlflow.log_metrics(results[m])
             mlflow.log_artifact(str(csv_path))
             own = report.figures({m: ep}, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) if cfg.plots else []

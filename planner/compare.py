@@ -1,9 +1,15 @@
-"""`compare`: prediction and gradient accuracy beside planning speed and outcomes, one row per gradient source and method.
+"""`compare`: prediction, gradient and interaction accuracy beside planning speed and outcomes, one row per comparable set-up.
 
-Rows come from the `planner` experiment grouped by run params (a Hydra multirun sweep lines up by itself);
-accuracy columns come from the latest `distill` run of each model and the latest `surrogate` run.
-A batch run counts as `episodes` episodes: its `merged`/`collision` metrics are rates, the others means;
-t_merge is averaged over merged episodes only.
+Rows come from the `planner` experiment grouped by the run params that define a comparable run (`group_by`: scenario,
+world, gradient source, predictor, method, Z-step, linearisation, T_p, rho, max_steps, the episode seeds); runs that
+share all of them (repeated trainings, re-runs) are pooled and listed in the row's `runs` column. A batch run counts as
+`episodes` episodes (the row's `n_episodes` sums them): its `merged`/`collision` metrics are rates (95% Wilson intervals over the pooled episodes), the
+others means; t_merge is averaged over merged episodes only.
+
+Accuracy columns belong to the row's predictor and gradient source: the latest `distill` run of its model (constant
+velocity: the `cv_*` metrics that run logs beside its own; the analytic predictor is not measured), the latest
+`surrogate` run for the surrogate's gradients, and the latest `interaction` run of the source (bench/interaction.py:
+react_* for its rollout response, react_*_jac for its first-order response).
 """
 import logging
 import os
@@ -15,10 +21,13 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, guarded, mlflow_run
+from planner.report import wilson
 
-OUTCOMES = ["merged", "collision", "t_merge", "C_max", "d_min_m", "step_ms_median", "step_ms_p95", "admm_iters_mean", "fallbacks"]
 log = logging.getLogger(__name__)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", "grad_cosine", "grad_rel_err"]
+INTERACTION = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac"]
+TRAINED = ("teacher", "student")  # predictors with a `distill` run of their own
+OWN_PREDICTOR = {"surrogate": "teacher", "fd": "teacher"}  # conf/predictor/: sources whose values come from another model
 
 
 def latest(runs: pd.DataFrame, param: str, value: str) -> pd.Series | None:
@@ -30,38 +39,55 @@ def latest(runs: pd.DataFrame, param: str, value: str) -> pd.Series | None:
     return None if hit.empty else hit.sort_values("start_time").iloc[-1]
 
 
-def accuracy(gradients: str, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame) -> dict:
-    """Accuracy columns for a gradient source: the predictor's ADE and the gradient's error vs teacher autodiff."""
-    model = "student" if gradients == "student" else "teacher"
+def metrics_of(run: pd.Series | None, keys, prefix: str = "") -> dict:
+    """{key: run's metric `prefix + key`} (NaN where absent or no run)."""
+    return {k: np.nan if run is None else run.get(f"metrics.{prefix}{k}", np.nan) for k in keys}
+
+
+def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame,
+             interaction_runs: pd.DataFrame) -> dict:
+    """Accuracy columns of a row: its predictor's ADE (m), its gradient's error against teacher autodiff, the source's
+    interaction scores."""
     row = {k: np.nan for k in ACCURACY}
-    pred = latest(distill_runs, "model", model)
-    if pred is not None:
-        row.update({k: pred.get(f"metrics.{k}", np.nan) for k in ("ade_1step_m", "ade_rollout_m", "jac_rel_err")})
-    if gradients in ("teacher", "fd"):  # the teacher's autodiff is the reference (exact by definition); fd is not measured
-        row.update(jac_rel_err=np.nan, grad_cosine=np.nan, grad_rel_err=np.nan)
+    if predictor in TRAINED:
+        row.update(metrics_of(latest(distill_runs, "model", predictor), ("ade_1step_m", "ade_rollout_m")))
+    elif predictor == "cv":  # every distill run evaluates constant velocity on its test split beside its own model
+        row.update(metrics_of(latest(distill_runs, "model", "teacher"), ("ade_1step_m", "ade_rollout_m"), "cv_"))
+    if gradients == "student":  # the student's Jacobian against the teacher's, measured by its distill run
+        row.update(metrics_of(latest(distill_runs, "model", "student"), ("jac_rel_err",)))
     if gradients == "surrogate":
-        sur = latest(surrogate_runs, "source", "teacher")
-        if sur is not None:
-            row.update({k: sur.get(f"metrics.{k}", np.nan) for k in ("jac_rel_err", "grad_cosine", "grad_rel_err")})
+        row.update(metrics_of(latest(surrogate_runs, "source", "teacher"), ("jac_rel_err", "grad_cosine", "grad_rel_err")))
+    row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
 
 
-def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame, group_by) -> pd.DataFrame:
-    """One row per combination of `group_by` params: episode-weighted outcomes, median step times, accuracy."""
-    runs = planner_runs[planner_runs["status"] == "FINISHED"].copy()
-    missing = [p for p in group_by if f"params.{p}" not in runs]
-    if runs.empty or missing:
-        raise UserError("no finished planner runs with params " + ", ".join(group_by) + " in the MLflow store: run `planner` first")
-    n = runs["metrics.episodes"].fillna(1.0) if "metrics.episodes" in runs else pd.Series(1.0, index=runs.index)
-    runs["n"] = n
+def param_frame(runs: pd.DataFrame, group_by) -> pd.DataFrame:
+    """The `group_by` params of each run as strings, '-' where a run did not log one (older runs)."""
+    return pd.DataFrame({p: runs[f"params.{p}"].fillna("-") if f"params.{p}" in runs else "-" for p in group_by},
+                        index=runs.index)
+
+
+def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame, group_by,
+          interaction_runs: pd.DataFrame | None = None) -> pd.DataFrame:
+    """One row per combination of `group_by` params: the runs pooled, episode-weighted outcomes with 95% intervals,
+    median step times, accuracy."""
+    runs = planner_runs[planner_runs["status"] == "FINISHED"].copy() if not planner_runs.empty else planner_runs
+    if runs.empty:
+        raise UserError("no finished planner runs in the MLflow store: run `planner` first")
+    interaction_runs = pd.DataFrame() if interaction_runs is None else interaction_runs
+    keys = param_frame(runs, group_by)
+    runs["n"] = runs["metrics.episodes"].fillna(1.0) if "metrics.episodes" in runs else 1.0
     rows = []
-    for key, g in runs.groupby([f"params.{p}" for p in group_by], dropna=False):
+    for key, g in runs.groupby([keys[p] for p in group_by]):
         w = g["n"]
         row = dict(zip(group_by, key if isinstance(key, tuple) else (key,)))
-        row["episodes"] = int(w.sum())
+        row["n_runs"] = len(g)
+        row["n_episodes"] = int(w.sum())
         for m in ("merged", "collision"):
             col = g.get(f"metrics.{m}")
-            row[f"{m}_rate"] = float(np.average(col, weights=w)) if col is not None and col.notna().all() else np.nan
+            ok = col is not None and col.notna().all()
+            row[f"{m}_rate"] = float(np.average(col, weights=w)) if ok else np.nan
+            row[f"{m}_lo"], row[f"{m}_hi"] = wilson(float(np.round((col * w).sum())), float(w.sum())) if ok else (np.nan, np.nan)
         for m in ("t_merge", "C_max", "admm_iters_mean", "fallbacks"):
             col = g.get(f"metrics.{m}")
             # t_merge means something only for merges: a run that never merged logs the steps it drove
@@ -71,34 +97,57 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
         row["d_min_m"] = float(g["metrics.d_min_m"].min()) if "metrics.d_min_m" in g else np.nan
         for m in ("step_ms_median", "step_ms_p95"):
             row[m] = float(g[f"metrics.{m}"].median()) if f"metrics.{m}" in g else np.nan
-        row.update(accuracy(row.get("gradients", ""), distill_runs, surrogate_runs))
+        gradients, predictor = row.get("gradients", "-"), row.get("predictor", "-")
+        if predictor == "-":  # a run older than the `predictor` param: its gradient source's default predictor
+            predictor = OWN_PREDICTOR.get(gradients, gradients)
+        row.update(accuracy(gradients, predictor, distill_runs, surrogate_runs, interaction_runs))
+        row["runs"] = " ".join(sorted(r[:8] for r in g["run_id"])) if "run_id" in g else ""
         rows.append(row)
     return pd.DataFrame(rows).sort_values(list(group_by)).reset_index(drop=True)
 
 
-def plot(df: pd.DataFrame, path: Path):
-    """Accuracy (1 - cosine of d b_i/dZ) and merge rate against median MPC step time, a point per row."""
+def label(r: pd.Series, varying) -> str:
+    """A row's legend label: its gradient source and method, then every other grouping param that varies across rows."""
+    head = "/".join(str(r[c]) for c in ("gradients", "method") if c in r)
+    rest = ", ".join(f"{c}={r[c]}" for c in varying if c not in ("gradients", "method"))
+    return f"{head} ({rest})" if rest else head
+
+
+def plot(df: pd.DataFrame, path: Path, group_by=()):
+    """Three panels against median MPC step time, one marker per row with a legend: gradient error (1 - cosine of
+    d b_i/dZ), merge rate with its 95% Wilson interval, interaction fidelity of the gradient (react_corr_jac)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for _, r in df.iterrows():
-        label = "/".join(str(r[c]) for c in ("gradients", "method", "zstep") if c in r)
-        x, err = r["step_ms_median"], 1.0 - r["grad_cosine"]
+    varying = [c for c in group_by if c in df and df[c].nunique() > 1]
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5.2))
+    cmap = plt.get_cmap("tab10" if len(df) <= 10 else "tab20")
+    markers = "osD^v<>Ph*X"
+    handles = []
+    for i, (_, r) in enumerate(df.iterrows()):
+        style = dict(color=cmap(i % cmap.N), marker=markers[i % len(markers)], ms=7, ls="none")
+        x = r["step_ms_median"]
+        err = 1.0 - r["grad_cosine"]
         if np.isfinite(err):
-            axes[0].scatter(x, max(err, 1e-6))
-            axes[0].annotate(label, (x, max(err, 1e-6)), fontsize=7)
-        axes[1].scatter(x, r["merged_rate"])
-        axes[1].annotate(label, (x, r["merged_rate"]), fontsize=7)
-    axes[0].set(xscale="log", yscale="log", xlabel="median MPC step (ms)", ylabel="1 - cos(d b_i/dZ, teacher autodiff)",
-                title="gradient accuracy vs speed")
-    axes[1].set(xscale="log", xlabel="median MPC step (ms)", ylabel="merge rate", ylim=(-0.05, 1.05), title="outcome vs speed")
+            axes[0].plot(x, max(err, 1e-6), **style)
+        yerr = [[r["merged_rate"] - r["merged_lo"]], [r["merged_hi"] - r["merged_rate"]]]
+        h = axes[1].errorbar(x, r["merged_rate"], yerr=yerr if np.isfinite(r["merged_lo"]) else None, capsize=4, **style)
+        if np.isfinite(r["react_corr_jac"]):
+            axes[2].plot(x, r["react_corr_jac"], **style)
+        handles.append((h, f"{label(r, varying)}: {r['n_episodes']} ep, {r['n_runs']} run{'s' * (r['n_runs'] > 1)}"))
+    axes[0].set(xscale="log", yscale="log", ylabel="1 - cos(d b_i/dZ, teacher autodiff)", title="gradient error vs speed")
+    axes[1].set(xscale="log", ylabel="merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
+    axes[2].set(xscale="log", ylabel="react_corr_jac (first-order response vs true)", ylim=(-1.05, 1.05),
+                title="interaction fidelity vs speed")
     for ax in axes:
+        ax.set_xlabel("median MPC step (ms)")
         ax.axvline(200, color="tab:red", ls=":", lw=1)  # real time: one 0.2 s step
         ax.grid(alpha=0.3)
-    fig.tight_layout()
+    fig.legend([h for h, _ in handles], [t for _, t in handles], loc="lower center", ncol=min(3, len(handles)), fontsize=8,
+               frameon=False)
+    fig.tight_layout(rect=(0, 0.06 * (1 + (len(handles) - 1) // 3), 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -114,22 +163,30 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
     return runs
 
 
+SHOWN = ["n_runs", "n_episodes", "merged_rate", "merged_lo", "merged_hi", "collision_rate", "t_merge", "d_min_m", "fallbacks",
+         "step_ms_median", "ade_rollout_m", "grad_cosine", "react_corr", "react_corr_jac", "runs"]
+
+
 @guarded
 def run(cfg: DictConfig) -> pd.DataFrame:
     """Build the table, print it, write compare.csv and compare.png, log both to MLflow (experiment `compare`)."""
-    df = table(search(cfg.experiment, cfg.scenario), search("distill"), search("surrogate"), list(cfg.group_by))
+    group_by = list(cfg.group_by)
+    df = table(search(cfg.experiment, cfg.scenario), search("distill"), search("surrogate"), group_by, search("interaction"))
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "compare.csv", index=False)
-    plot(df, out / "compare.png")
+    plot(df, out / "compare.png", group_by)
     with mlflow_run("compare", cfg):
         import mlflow
 
         mlflow.log_artifact(str(out / "compare.csv"))
         mlflow.log_artifact(str(out / "compare.png"))
-    with pd.option_context("display.width", 200, "display.max_columns", 30, "display.precision", 3):
-        log.info("\n%s", df.to_string(index=False))
-    log.info("wrote %s and %s", out / "compare.csv", out / "compare.png")
+    shown = [c for c in group_by if df[c].nunique() > 1 or c in ("gradients", "method")] + SHOWN
+    same = {c: df[c].iloc[0] for c in group_by if c not in shown}
+    with pd.option_context("display.width", 250, "display.max_columns", 40, "display.precision", 3,
+                           "display.max_colwidth", 60):
+        log.info("every row: %s\n%s", ", ".join(f"{k}={v}" for k, v in same.items()), df[shown].to_string(index=False))
+    log.info("wrote %s (all columns) and %s", out / "compare.csv", out / "compare.png")
     return df
 
 

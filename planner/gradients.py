@@ -37,12 +37,21 @@ class ExactLocal(Source):
 
 
 class Surrogate(Source):
-    """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule."""
+    """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule; with
+    `rollout`, a whole linearisation (T_p windows' values and Jacobians, composed) in one onnxruntime call."""
 
-    def __init__(self, name, predictor, surrogate):
+    def __init__(self, name, predictor, surrogate, rollout):
         super().__init__(name, predictor)
-        self.surrogate = surrogate
-        self.joint = surrogate.fused  # one onnxruntime call gives values and J: see Safety.__call__
+        self.surrogate, self.rollout = surrogate, rollout
+        self.joint = rollout or surrogate.fused  # values and J come from one onnxruntime call: see Safety.trial
+
+    def values(self, history, ego_futures):
+        """Predicted xy (B, T_p, M, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
+        if not self.rollout:
+            return super().values(history, ego_futures)
+        ego_futures = np.asarray(ego_futures, dtype=float)
+        return self.surrogate.rollout(np.broadcast_to(history, (len(ego_futures),) + np.shape(history)), ego_futures,
+                                      grads=False)
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2); a fused export runs the predictor's forward pass itself (onnxruntime: ~4x faster than
@@ -51,6 +60,9 @@ class Surrogate(Source):
 
     def jacobian(self, history, ego_future):
         """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) with the surrogate's local Jacobians."""
+        if self.rollout:
+            values, grads = self.surrogate.rollout(np.asarray(history)[None], np.asarray(ego_future)[None])
+            return values[0], grads[0]
         if self.surrogate.fused:  # values and J in one onnxruntime call per step
             return rollout_jacobian(self.surrogate.phi_jac, history, ego_future)
         return rollout_jacobian(lambda w: (self.predictor.phi(w), self.surrogate.jac(w)), history, ego_future)

@@ -37,7 +37,8 @@ class Settings:
     v_box: tuple  # m/s
     y_margin: float  # how far the ego's centre may leave the outer lane centres (m)
     linearize: str  # last_observed | along_plan
-    admm: dict  # planner.admm.admm_solve's max_iters, tol_F, tol_step
+    admm: dict  # planner.admm.admm_solve's max_iters, tol_F, tol_step, balance_rho
+    box_qp: str  # Delta- and alpha-updates: closed_form (the unconstrained minimiser when inside the box, else OSQP) | osqp
     zstep: Callable  # zstep(Phi_3, C, rho, lo, hi, safety, osqp_settings) -> a Z-step (planner.zstep)
     osqp: dict  # OSQP settings of every sub-problem
     check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
@@ -108,8 +109,9 @@ def J_of(s: Settings, u_prev, Delta, alpha, Z):
     return Phi_1(Delta) + Phi_2(alpha) + Phi_3(Z)
 
 
-def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
-    """The step's Problem and the ADMM start: the shifted previous plan, or zero inputs rolled out (cold)."""
+def start_point(s: Settings, obs: Observation, warm: admm.ADMMState | None):
+    """Where a step's solver starts (the shifted previous plan, or zero inputs rolled out: cold) and the dynamics
+    linearised for it; shared by ADMM and solver=ipopt so both solve the same problem from the same point."""
     z0, u_prev = np.asarray(obs.z0, float), np.asarray(obs.u_prev, float)
     if warm is None:
         Delta, alpha = np.zeros(s.T_p), np.zeros(s.T_p)
@@ -117,14 +119,19 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
     else:
         start = shift(warm)._replace(zstate=None)
     plan = (start.Delta, start.alpha, start.Z) if s.linearize == "along_plan" else None
-    dyn = dynamics.linearize(z0, u_prev[0], u_prev[1], s.params, s.T_p, plan)
-    Phi_1, Phi_2, Phi_3 = costs(s, u_prev)
+    return start, dynamics.linearize(z0, u_prev[0], u_prev[1], s.params, s.T_p, plan)
+
+
+def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
+    """The step's Problem and the ADMM start (start_point, Z clipped to the state box)."""
+    start, dyn = start_point(s, obs, warm)
+    Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)
     lo, hi = state_box(s)
     safety = Safety(source, obs.history, s.R, s.T_p)
     prob = admm.Problem(
         dyn, Phi_1, Phi_2, Phi_3, s.rho,
-        admm.box_qp(Phi_1, dyn.A, s.rho, *s.delta_box, s.osqp),
-        admm.box_qp(Phi_2, dyn.B, s.rho, *s.a_box, s.osqp),
+        admm.box_qp(Phi_1, dyn.A, s.rho, *s.delta_box, s.osqp, s.box_qp == "closed_form"),
+        admm.box_qp(Phi_2, dyn.B, s.rho, *s.a_box, s.osqp, s.box_qp == "closed_form"),
         s.zstep(Phi_3, dyn.C, s.rho, lo, hi, safety, s.osqp),
     )
     return prob, start._replace(Z=np.clip(start.Z, lo, hi))

@@ -154,6 +154,10 @@ class PyGransoZStep:
         self.i_lo, self.i_hi = np.flatnonzero(np.isfinite(self.lo)), np.flatnonzero(np.isfinite(self.hi))
         self.b = autodiff_b(safety, safety.source) if getattr(safety.source, "torch_rollout", False) else source_b(safety)
 
+    def set_rho(self, rho):
+        """A new ADMM penalty (residual balancing): the smooth part's Hessian P_3 + rho C'C."""
+        self.rho, self.H = rho, self.torch.as_tensor((self.Phi_3.P + rho * self.C.T @ self.C).toarray())
+
     def c(self, Z):
         """Inequality constraints c(Z) <= 0: -b_i(Z) (m^2), then z_min - Z and Z - z_max on the finite bounds."""
         torch = self.torch

@@ -1,7 +1,8 @@
-"""The one place OSQP is called: set a convex QP up once, then update vectors (and constraint values) and re-solve."""
+"""The one place OSQP is called: set a convex QP up once, then update vectors (and matrix values) and re-solve; and the
+small box QPs of the Delta- and alpha-updates, solved in closed form when the box is inactive."""
 import numpy as np
 import osqp
-from scipy import sparse
+from scipy import linalg, sparse
 
 
 class SolverFailure(RuntimeError):
@@ -12,22 +13,64 @@ ACCEPTED = ("solved", "solved inaccurate", "maximum iterations reached")
 
 
 class QP:
-    """min 1/2 x'Px + q'x s.t. l <= Gx <= u, built once; `solve(q=, l=, u=, Gx=)` updates and warm-starts."""
+    """min 1/2 x'Px + q'x s.t. l <= Gx <= u, built once; `solve(q=, l=, u=, Gx=)` updates and warm-starts, `set_P`
+    changes P's values (same sparsity)."""
 
     def __init__(self, P, q, G, l, u, settings: dict):
         self.G = sparse.csc_matrix(G)
+        P = sparse.csc_matrix(np.triu(P) if isinstance(P, np.ndarray) else sparse.triu(P))
+        P.sort_indices()
+        self.P_rows, self.P_cols = P.indices, np.repeat(np.arange(P.shape[1]), np.diff(P.indptr))
         self.solver = osqp.OSQP()
-        self.solver.setup(sparse.triu(sparse.csc_matrix(P), format="csc"), np.asarray(q, float), self.G,
-                          np.asarray(l, float), np.asarray(u, float), verbose=False, warm_starting=True, **settings)
+        self.solver.setup(P, np.asarray(q, float), self.G, np.asarray(l, float), np.asarray(u, float), verbose=False,
+                          warm_starting=True, **settings)
+
+    def set_P(self, P_dense):
+        """New values of P (a dense symmetric array) on the sparsity it was set up with."""
+        self.solver.update(Px=np.ascontiguousarray(P_dense[self.P_rows, self.P_cols]))
 
     def solve(self, q=None, l=None, u=None, Gx=None):
         """Optimal x after updating any of q, l, u and the constraint matrix values Gx (same sparsity, CSC order)."""
-        vectors = {k: np.asarray(v, float) for k, v in (("q", q), ("l", l), ("u", u)) if v is not None}
-        if vectors:
-            self.solver.update(**vectors)
-        if Gx is not None:
-            self.solver.update(Ax=np.asarray(Gx, float))
+        data = {k: np.asarray(v, float) for k, v in (("q", q), ("l", l), ("u", u), ("Ax", Gx)) if v is not None}
+        if data:
+            self.solver.update(**data)
         result = self.solver.solve(raise_error=False)
         if result.info.status not in ACCEPTED or not np.all(np.isfinite(result.x)):
             raise SolverFailure(f"OSQP {result.info.status}")
         return result.x
+
+
+class BoxQP:
+    """min 1/2 x'Px + q'x s.t. lo <= x <= hi for a small positive definite P, built once, `solve(q)` per iteration.
+
+    closed_form: first the unconstrained minimiser -P^-1 q (Cholesky); inside the box it is the box QP's solution, exactly,
+    and costs a matrix-vector product; otherwise (or closed_form=False) OSQP, set up at its first use and warm-started."""
+
+    def __init__(self, P, q, lo, hi, settings: dict, closed_form: bool):
+        self.P = P.toarray() if sparse.issparse(P) else np.asarray(P, float)
+        self.q0, self.settings, self.closed_form = q, settings, closed_form
+        self.lo, self.hi = np.full(len(self.P), lo, float), np.full(len(self.P), hi, float)
+        self.qp = None if closed_form else self.osqp()
+        self.P_inv = linalg.cho_solve(linalg.cho_factor(self.P), np.eye(len(self.P))) if closed_form else None
+
+    def osqp(self):
+        """The OSQP problem on the current P."""
+        return QP(self.P, self.q0, sparse.eye(len(self.P), format="csc"), self.lo, self.hi, self.settings)
+
+    def set_P(self, P_dense):
+        """New P (dense, same sparsity as at set-up)."""
+        self.P = P_dense
+        if self.qp is not None:
+            self.qp.set_P(P_dense)
+        if self.closed_form:
+            self.P_inv = linalg.cho_solve(linalg.cho_factor(P_dense), np.eye(len(P_dense)))
+
+    def solve(self, q):
+        """The box QP's minimiser for linear term q."""
+        if self.closed_form:
+            x = -(self.P_inv @ q)
+            if np.all(x >= self.lo) and np.all(x <= self.hi):
+                return x
+        if self.qp is None:
+            self.qp = self.osqp()
+        return self.qp.solve(q=q)

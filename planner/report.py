@@ -1,15 +1,45 @@
-"""What a run reports: Table II metrics, the per-step CSV, figures like the paper's Figs. 2-4, and the summary table."""
+"""What a run reports: Table II metrics, the per-step CSV, figures like the paper's Figs. 2-4, a merge animation, the
+summary table, and the 95% confidence intervals every aggregate is given with (Wilson for rates, t for means)."""
 import csv
+import math
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+from matplotlib.patches import Polygon  # noqa: E402
+from scipy import stats  # noqa: E402
 
-from data.plot import plot_episode  # noqa: E402
+from data.plot import draw_road, plot_episode  # noqa: E402
+from data.world import corners  # noqa: E402
 
 COLORS = {"admm": "tab:red", "nnmpc": "tab:purple"}
+Z95 = stats.norm.ppf(0.975)
+
+
+def wilson(k: float, n: float, z: float = Z95) -> tuple[float, float]:
+    """Wilson score 95% interval (lo, hi) of a rate from k successes in n trials; (nan, nan) for n = 0."""
+    if n <= 0:
+        return float("nan"), float("nan")
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
+def mean_ci(values) -> tuple[float, float, float]:
+    """(mean, lo, hi): the mean of the finite values with its Student-t 95% interval; lo = hi = mean for one value."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return (float("nan"),) * 3
+    m = float(v.mean())
+    if len(v) == 1:
+        return m, m, m
+    half = float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    return m, m - half, m + half
 
 
 def metrics(ep, y_ref, x_ref, merge_tol):
@@ -35,13 +65,41 @@ def write_csv(ep, path):
         w.writerows(ep.rows)
 
 
-def figures(episodes: dict, road, x_ref, y_ref, out_dir, title):
-    """PNG paths: merge snapshots per method (Figs. 2-3), trajectory + cost and steering + acceleration (Fig. 4)."""
+def animate(states, road, path, title="", x_ref=None, dt=0.2):
+    """A GIF of a closed-loop run (pillow writer, real time): the cars as rectangles, the ego green, trails behind them;
+    states (T+1, M, 4), dt the step (s)."""
+    states = np.asarray(states)
+    fig, ax = plt.subplots(figsize=(10, 1.4 + 1.1 * road.lanes))
+    draw_road(ax, road, states[:, :, 0].min() - 5, states[:, :, 0].max() + 5, x_ref)
+    colors = ["tab:green"] + ["tab:blue"] * (states.shape[1] - 1)
+    cars = [ax.add_patch(Polygon(corners(z, road), closed=True, fc=c, ec="k", lw=0.5)) for z, c in zip(states[0], colors)]
+    trails = [ax.plot([], [], color=c, lw=1.5 if i == 0 else 0.8, alpha=0.6)[0] for i, c in enumerate(colors)]
+    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
+    ax.set_ylim(-0.5 * road.lane_width - 1, (road.lanes - 0.5) * road.lane_width + 1)
+    fig.tight_layout()
+
+    def frame(t):
+        for i, (car, trail) in enumerate(zip(cars, trails)):
+            car.set_xy(corners(states[t, i], road))
+            trail.set_data(states[: t + 1, i, 0], states[: t + 1, i, 1])
+        ax.set_title(f"{title}   t = {t * dt:.1f} s", fontsize=9)
+        return cars + trails
+
+    FuncAnimation(fig, frame, frames=len(states), blit=False).save(path, writer=PillowWriter(fps=round(1 / dt)))
+    plt.close(fig)
+
+
+def figures(episodes: dict, road, x_ref, y_ref, out_dir, title, animation=True):
+    """Paths: merge snapshots per method (Figs. 2-3) with the run as a GIF beside them, trajectory + cost and steering +
+    acceleration (Fig. 4)."""
     paths = []
     for method, ep in episodes.items():
         p = out_dir / f"snapshots_{method}.png"
         plot_episode(ep.states, road, p, f"{title} - {method}", x_ref, snapshots=6)
         paths.append(p)
+        if animation:
+            paths.append(out_dir / f"merge_{method}.gif")
+            animate(ep.states, road, paths[-1], f"{title} - {method}", x_ref)
     tag = "_".join(episodes)
     fig, (ax_xy, ax_J) = plt.subplots(2, 1, figsize=(9, 6))
     for method, ep in episodes.items():

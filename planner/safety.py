@@ -5,11 +5,12 @@ from core.rollout import b_i, b_i_jacobian, ego_xy
 
 
 class Safety:
-    """b_i(Z) for one MPC step: the gradient source's predictions from `history`, radius R (m); caches the last linearisation."""
+    """b_i(Z) for one MPC step: the gradient source's predictions from `history`, radius R (m); keeps the source's last
+    linearisation (the ego plan it was taken at, the rollout values and their derivative), which nearby plans may reuse."""
 
     def __init__(self, source, history, R, T_p):
         self.source, self.history, self.R, self.T_p = source, np.asarray(history, dtype=float), R, T_p
-        self._last = (None, None)
+        self._lin = None  # (ego xy (T_p, 2), values (T_p, SLOTS, 2), d values / d ego xy (T_p, SLOTS, 2, T_p, 2))
 
     def ego_xy(self, Z):
         """The ego's planned xy (T_p, 2) from Z stacked as [x, y, psi, v] per step."""
@@ -19,15 +20,29 @@ class Safety:
         """b_i(Z) flattened (N*T_p,), m^2, from the predictor's values only."""
         return b_i(self.source.values(self.history, self.ego_xy(Z)[None])[0], self.R).reshape(-1)
 
-    def trial(self, Z):
-        """b_i(Z) at a trial step: for a source whose values come with the Jacobian at little extra cost (`joint`), from
-        the linearisation at Z, cached, since an accepted step is linearised next; else as __call__."""
-        return self.linearize(Z)[0] if getattr(self.source, "joint", False) else self(Z)
+    def offset(self, Z):
+        """How far (m, largest over the horizon and x, y) the ego's planned xy in Z lie from the last linearisation's."""
+        return np.inf if self._lin is None else float(np.max(np.abs(self.ego_xy(Z) - self._lin[0])))
 
-    def linearize(self, Z):
-        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) from the gradient source."""
-        key = np.asarray(Z, dtype=float).tobytes()
-        if self._last[0] != key:
-            values, grads = self.source.jacobian(self.history, self.ego_xy(Z))
-            self._last = (key, b_i_jacobian(values, grads, self.R))
-        return self._last[1]
+    def reused(self, Z):
+        """b_i(Z) and d b_i / d Z with the others' predictions affine in the ego plan about the last linearisation: the
+        ego's own position enters b_i exactly, only the others' response is linearised."""
+        ego0, values0, grads = self._lin
+        values = values0 + np.einsum("tmkse,se->tmk", grads, self.ego_xy(Z) - ego0)  # the ego slot moves exactly with Z
+        return b_i_jacobian(values, grads, self.R)
+
+    def trial(self, Z, reuse_radius=0.0):
+        """b_i(Z) at a trial step: within reuse_radius of the last linearisation, from it; for a source whose values come
+        with the Jacobian at little extra cost (`joint`), from a linearisation at Z, kept since an accepted step is
+        linearised next; else as __call__."""
+        if self.offset(Z) <= reuse_radius or getattr(self.source, "joint", False):
+            return self.linearize(Z, reuse_radius)[0]
+        return self(Z)
+
+    def linearize(self, Z, reuse_radius=0.0):
+        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p): from the last linearisation while the ego's plan stays within
+        reuse_radius (m) of it (0: only at the same plan), else a new one from the gradient source."""
+        if self.offset(Z) > reuse_radius:
+            ego = self.ego_xy(Z).copy()
+            self._lin = (ego, *self.source.jacobian(self.history, ego))
+        return self.reused(Z)

@@ -52,9 +52,9 @@ def make(scenario: str = "two_lane", overrides=()):
     return setup(planner_config(scenario, overrides))
 
 
-def run_params(scenario, source, s: mpc.Settings, seed: int) -> dict:
-    """The MLflow params that name a planner run's set-up (compare groups rows by them)."""
-    return {"gradients": source.name, "zstep": s.zstep.func.name, "scenario": scenario.name, "seed": seed,
+def run_params(scenario, source, s: mpc.Settings, seed: int, solver: str) -> dict:
+    """The MLflow params that name a planner run's set-up (compare groups rows by them); solver: cfg.solver.name."""
+    return {"gradients": source.name, "zstep": s.zstep.func.name, "solver": solver, "scenario": scenario.name, "seed": seed,
             "predictor": source.predictor.name}
 
 

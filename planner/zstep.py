@@ -1,8 +1,10 @@
 """Z-update solvers behind one signature, chosen by the `zstep` config group (conf/zstep/); `sqp` is sequential QP with OSQP.
 
 A Z-step is built once per MPC step from (Phi_3, C, rho, box, safety, settings) and called per ADMM iteration as
-zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info), where zstate is the solver's own carried state (None at first).
-Its class attribute `name` is the option's name (MLflow param `zstep`).
+zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info), where zstate is the solver's own carried state (None at first,
+and whenever ADMM wants it to start afresh); `set_rho(rho)` follows ADMM's penalty. Its class attribute `name` is the
+option's name (MLflow param `zstep`). An info key `lin_offset` (m) says how far Z_{k+1} lies from where b_i was last
+linearised (see planner.admm.admm_solve).
 """
 from functools import lru_cache
 from typing import NamedTuple
@@ -26,6 +28,7 @@ class SQPSettings(NamedTuple):
     lambda_s: float  # penalty-form multiplier (1/m^2 per constraint)
     slack_penalty: float  # L1 price of violating a linearised b_i >= 0 (per m^2)
     slack_tol: float  # slack (m^2) above which the linearisation counts as infeasible
+    reuse_radius: float  # m: b_i's linearisation is reused while the ego's planned xy stay this close to where it was taken
 
 
 @lru_cache(maxsize=8)
@@ -56,11 +59,27 @@ class SQPZStep:
         n_Z = C.shape[0]
         n_b = (safety.history.shape[1] - 1) * (n_Z // 4)
         self.n_Z, self.n_b = n_Z, n_b
-        self.H = (Phi_3.P + rho * C.T @ C).tocsc()  # the exact Hessian of the smooth part; fixed while rho is
-        self.H_dense = self.H.toarray()  # 4T_p square: a dense product beats a sparse one from Python
-        P = sparse.block_diag([self.H, sparse.csc_matrix((n_b, n_b))], format="csc")
-        G, self.G_rows, self.G_cols, self.G_data, self.is_b, self.xy = constraint_pattern(n_Z, n_b)
-        self.qp = QP(P, np.zeros(n_Z + n_b), G, np.zeros(G.shape[0]), np.full(G.shape[0], np.inf), osqp_settings)
+        self.P_3, self.C_dense = Phi_3.P.toarray(), C.toarray()  # 4T_p square: dense beats sparse from Python
+        self.CtC = self.C_dense.T @ self.C_dense
+        self.H_dense = self.P_3 + rho * self.CtC  # the exact Hessian of the smooth part; fixed while rho is
+        G, self.G_rows, self.G_cols, G_data, self.is_b, self.xy = constraint_pattern(n_Z, n_b)
+        # the slack in units of 1/sqrt(its price): its column and its price alike ~sqrt(slack_penalty), which OSQP's
+        # equilibration handles; unscaled, its multipliers ~slack_penalty took OSQP ~5x more iterations
+        self.k_s = settings.slack_penalty ** -0.5
+        self.G_data = np.where((self.G_cols >= n_Z) & (self.G_rows < n_Z + n_b), self.k_s, G_data)
+        G = sparse.csc_matrix((self.G_data, G.indices, G.indptr), shape=G.shape)
+        self.qp = QP(self.P(), np.zeros(n_Z + n_b), G, np.zeros(G.shape[0]), np.full(G.shape[0], np.inf), osqp_settings)
+
+    def P(self):
+        """The QP's Hessian over x = [Z; s]: H, and nothing on the slack (priced linearly)."""
+        P = np.zeros((self.n_Z + self.n_b,) * 2)
+        P[:self.n_Z, :self.n_Z] = self.H_dense
+        return P
+
+    def set_rho(self, rho):
+        """A new ADMM penalty: H = P_3 + rho C'C."""
+        self.rho, self.H_dense = rho, self.P_3 + rho * self.CtC
+        self.qp.set_P(self.P())
 
     def model(self, Z, lin_q):
         """The exact quadratic part 1/2 Z'HZ + lin_q'Z."""
@@ -73,14 +92,16 @@ class SQPZStep:
         return self.model(Z, lin_q) - self.s.lambda_s * np.sum(b)
 
     def __call__(self, Z, mu, c_Z, zstate=None):
-        """Z_{k+1} from Z_k; zstate is the trust radius (m); info: SQP iterations, max slack, infeasible, min b_i."""
+        """Z_{k+1} from Z_k; zstate is the trust radius (m), None: start afresh (b_i linearised anew at Z_k); info: SQP
+        iterations, max slack, infeasible, min b_i, lin_offset (m)."""
         radius = self.s.trust_radius if zstate is None else zstate
-        lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
+        reuse = 0.0 if zstate is None else self.s.reuse_radius
+        lin_q = self.Phi_3.q + self.C_dense.T @ (mu - self.rho * c_Z)
         Z = np.clip(Z, self.lo, self.hi)
-        b, Jb = self.safety.linearize(Z)
+        b, Jb = self.safety.linearize(Z, reuse)
         b_Z, slack, its = b, 0.0, 0
         for its in range(1, self.s.max_iters + 1):
-            q = np.concatenate([lin_q, np.full(self.n_b, self.s.slack_penalty)])
+            q = np.concatenate([lin_q, np.full(self.n_b, self.s.slack_penalty * self.k_s)])
             if self.s.mode == "penalty":
                 q[:self.n_Z] -= self.s.lambda_s * Jb.sum(0)
             tr = np.where(self.xy, radius, np.inf)
@@ -90,9 +111,9 @@ class SQPZStep:
             data = self.G_data.copy()
             data[self.is_b] = Jb[self.G_rows[self.is_b] - self.n_Z, self.G_cols[self.is_b]]
             x = self.qp.solve(q=q, l=l, u=u, Gx=data)
-            Z_new, s = x[:self.n_Z], x[self.n_Z:]
+            Z_new, s = np.clip(x[:self.n_Z], self.lo, self.hi), x[self.n_Z:] * self.k_s  # OSQP's box is met to its tolerance
             slack = float(max(s.max(initial=0.0), 0.0))
-            b_new = self.safety.trial(Z_new)
+            b_new = self.safety.trial(Z_new, self.s.reuse_radius)
             here = self.merit(Z, lin_q, b)
             predicted = here - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
             actual = here - self.merit(Z_new, lin_q, b_new)
@@ -103,9 +124,9 @@ class SQPZStep:
                 Z, b_Z = Z_new, b_new
                 if step < self.s.tol:
                     break
-                b, Jb = self.safety.linearize(Z)
+                b, Jb = self.safety.linearize(Z, self.s.reuse_radius)
             else:
                 radius = max(0.5 * radius, self.s.min_radius)
         return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
-                           "b_min": float(b_Z.min(initial=np.inf))}
+                           "b_min": float(b_Z.min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
 

@@ -1,24 +1,36 @@
-"""ONNX export of the surrogate (optionally fused with the source predictor's forward pass), source in the metadata."""
+"""ONNX export of the surrogate (optionally fused with the source predictor's forward pass, or the whole rollout), the
+source predictor and the shapes in the metadata."""
 import onnx
 import torch
 
 from core.jobs import atomic_file
 
 
-def export(module, path, T_obs, M, source, opset=17):
-    """Write `module` (window (B, T_obs, SLOTS, 2) -> J, or (J, next) when fused) to `path` with metadata `source`."""
+def write(module, path, inputs: dict, outputs: list, metadata: dict, opset=17):
+    """Write `module` traced on example `inputs` {name: tensor} with `outputs` named, batch axis 0 dynamic, to `path`."""
     module = module.float().eval()
-    window = torch.zeros(1, T_obs, M, 2)
-    with torch.no_grad():
-        outputs = module(window)
-    names = ["J", "next"] if isinstance(outputs, tuple) else ["J"]
 
-    def write(tmp):
-        # dynamo=False: the TorchScript exporter needs no onnxscript, and these MLPs trace exactly
-        torch.onnx.export(module, (window,), str(tmp), input_names=["window"], output_names=names, opset_version=opset,
-                          dynamic_axes={n: {0: "B"} for n in ["window", *names]}, dynamo=False)
+    def save(tmp):
+        # dynamo=False: the TorchScript exporter needs no onnxscript, and these networks trace exactly
+        torch.onnx.export(module, tuple(inputs.values()), str(tmp), input_names=list(inputs), output_names=outputs,
+                          opset_version=opset, dynamic_axes={n: {0: "B"} for n in [*inputs, *outputs]}, dynamo=False)
         model = onnx.load(str(tmp))
-        onnx.helper.set_model_props(model, {"source": source, "T_obs": str(T_obs), "M": str(M)})
+        onnx.helper.set_model_props(model, {k: str(v) for k, v in metadata.items()})
         onnx.save(model, str(tmp))
 
-    atomic_file(path, write)
+    atomic_file(path, save)
+
+
+def export(module, path, T_obs, M, source, opset=17):
+    """Write `module` (window (B, T_obs, SLOTS, 2) -> J, or (J, next) when fused) to `path` with metadata `source`."""
+    window = torch.zeros(1, T_obs, M, 2)
+    with torch.no_grad():
+        outputs = module.float().eval()(window)
+    names = ["J", "next"] if isinstance(outputs, tuple) else ["J"]
+    write(module, path, {"window": window}, names, {"source": source, "T_obs": T_obs, "M": M}, opset)
+
+
+def export_rollout(module, path, T_obs, M, T_p, source, opset=17):
+    """Write a surrogate.network.Rollout ((history, ego_future) -> (values, grads)) to `path` with metadata `source`."""
+    inputs = {"history": torch.zeros(1, T_obs, M, 2), "ego_future": torch.zeros(1, T_p, 2)}
+    write(module, path, inputs, ["values", "grads"], {"source": source, "T_obs": T_obs, "M": M, "T_p": T_p}, opset)

@@ -1,4 +1,5 @@
-"""compare: rows line up by params, outcomes are episode-weighted, accuracy comes from the latest model runs."""
+"""compare: rows line up by the params of a comparable run, outcomes are episode-weighted with Wilson intervals,
+accuracy comes from the latest runs of the row's own predictor and gradient source."""
 import logging
 
 import mlflow
@@ -46,7 +47,7 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, caplog):
     df = run(compose_cfg("compare", [f"out_dir={store}"]))
     assert list(df["gradients"]) == ["surrogate", "teacher"]
     s = df.iloc[0]
-    assert s["episodes"] == 13
+    assert s["n_episodes"] == 13
     assert s["merged_rate"] == pytest.approx((1 + 0 + 1 + 0.5 * 10) / 13)
     assert s["collision_rate"] == pytest.approx(1.0 / 13)
     assert s["t_merge"] == pytest.approx((9 * 2 + 12 * 0.5 * 10) / (2 + 0.5 * 10))  # merged episodes only
@@ -55,9 +56,35 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, caplog):
     assert s["grad_cosine"] == 0.97 and s["ade_1step_m"] == 0.1
     t = df.iloc[1]  # the teacher: its own autodiff is the reference, so no gradient error is claimed for it
     assert np.isnan(t["grad_cosine"]) and np.isnan(t["grad_rel_err"]) and np.isnan(t["jac_rel_err"])
-    assert t["ade_1step_m"] == 0.1 and t["ade_rollout_m"] == 0.5 and t["episodes"] == 1 and t["step_ms_median"] == 900.0
+    assert t["ade_1step_m"] == 0.1 and t["ade_rollout_m"] == 0.5 and t["n_episodes"] == 1 and t["step_ms_median"] == 900.0
     assert (store / "compare.png").read_bytes()[:4] == b"\x89PNG"
-    assert (store / "compare.csv").read_text().splitlines()[0].startswith("gradients,method,zstep,episodes")
+    assert (store / "compare.csv").read_text().splitlines()[0].startswith("scenario,world,gradients,predictor,method")
+    assert s["n_runs"] == 4 and len(s["runs"].split()) == 4
     assert "surrogate" in caplog.text and "0.97" in caplog.text
     runs = mlflow.search_runs(experiment_names=["compare"])
     assert len(runs) == 1 and runs.iloc[0]["status"] == "FINISHED"
+
+
+def test_rows_split_by_setup_and_accuracy_follows_the_predictor(store):
+    base = {"method": "admm", "zstep": "sqp", "scenario": "two_lane", "world": "reactive", "mpc.T_p": "8", "seed": "0",
+            "episodes": "0"}
+    ok = {"merged": 1, "collision": 0, "step_ms_median": 5.0, "step_ms_p95": 9.0, "t_merge": 11, "C_max": 60, "d_min_m": 4.0}
+    for steps, rho in [("60", "100"), ("60", "100"), ("2", "100"), ("60", "0.0")]:
+        log("planner", {**base, "gradients": "cv", "predictor": "cv", "max_steps": steps, "mpc.rho": rho}, ok)
+    log("planner", {**base, "gradients": "surrogate", "predictor": "teacher", "max_steps": "60", "mpc.rho": "100"},
+        {**ok, "episodes": 40, "merged": 0.75})
+    log("distill", {"model": "teacher"}, {"ade_1step_m": 0.002, "ade_rollout_m": 0.04, "cv_ade_1step_m": 0.007,
+                                          "cv_ade_rollout_m": 0.107})
+    log("interaction", {"source": "cv"}, {"react_corr": 0.0, "react_corr_jac": 0.0, "react_hit": 0.1})
+    log("interaction", {"source": "surrogate"}, {"react_corr": 0.6, "react_corr_jac": 0.3, "react_hit": 0.4})
+    df = run(compose_cfg("compare", [f"out_dir={store}"]))
+    cv = df[df["gradients"] == "cv"].set_index(["max_steps", "mpc.rho"])
+    assert len(cv) == 3 and list(cv.loc[("60", "100"), ["n_runs", "n_episodes"]]) == [2, 2]  # only the two equal runs pooled
+    assert cv.loc[("2", "100"), "n_runs"] == 1 and cv.loc[("60", "0.0"), "n_runs"] == 1
+    assert (cv["ade_rollout_m"] == 0.107).all() and cv["react_corr_jac"].eq(0.0).all()  # constant velocity's, not the teacher's
+    assert cv["grad_cosine"].isna().all()
+    sur = df[df["gradients"] == "surrogate"].iloc[0]
+    assert sur["ade_rollout_m"] == 0.04 and sur["react_corr"] == 0.6 and sur["react_corr_jac"] == 0.3
+    lo, hi = sur["merged_lo"], sur["merged_hi"]  # Wilson, 30 of 40: 0.5981 .. 0.8581
+    assert lo == pytest.approx(0.5981, abs=1e-4) and hi == pytest.approx(0.8581, abs=1e-4)
+    assert (store / "compare.png").read_bytes()[:4] == b"\x89PNG"
