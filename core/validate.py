@@ -214,6 +214,8 @@ MAKE_DATASET = {
     **{f"dataset.policy.{k}": Range(0) for k in ("t_start", "y_nudge", "hold", "retry_after", "need_dx", "v_change_t",
                                                   "align_gain")},
     **{f"dataset.policy.{k}": Range() for k in ("dv_cruise", "dv_cruise2")},
+    "dataset.branches.points": Int(0), "dataset.branches.reach": POS, "dataset.branches.steps": Int(1),
+    "dataset.branches.y_push": Range(0), "dataset.branches.dv": Range(0),
 }
 
 TRAINER = {

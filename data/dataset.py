@@ -2,10 +2,15 @@
 
 Slots: 0 is the ego; 1..N are the other cars, ordered front to back by their x at the episode's start
 (a car keeps its slot for the whole episode). Coordinates are world metres: x along the road, y to the left.
+Besides each episode's own run (branch 0), counterfactual branches (1, 2, ...) restart a copy of the world at a few
+random steps where the ego can interact (same drivers, same hidden decisions) and drive the ego on differently for
+T_p steps: interventional data showing how the others react to what the ego does.
 """
+import copy
 import hashlib
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,29 +19,78 @@ from joblib import Parallel, delayed
 from core.jobs import UserError, atomic_dir
 from data.policies import sample_policy
 from data.scenarios import Scenario
+from data.world import steer_to
 
-FORMAT = 1
+FORMAT = 2
 SPLITS = ("train", "val", "test")
 ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and SLOTS = N + 1)
     "X": ("f", lambda t, m: (t, m, 2)),
     "Y": ("f", lambda t, m: (m, 2)),
     "episode": ("i", lambda t, m: ()),
     "step": ("i", lambda t, m: ()),
+    "branch": ("i", lambda t, m: ()),
     "yielding": ("b", lambda t, m: (m,)),
 }
 
 
-def rollout(scenario: Scenario, policy, seed: int, steps: int):
-    """Run one episode; returns states (steps+1, M, 4), yielding (steps+1, SLOTS), the world (ends early on a collision)."""
+def rollout(scenario: Scenario, policy, seed: int, steps: int, snapshots=()):
+    """Run one episode; returns states (steps+1, M, 4), yielding (steps+1, SLOTS), the world (ends early on a collision),
+    and copies of the world after each step in `snapshots` that the episode reached."""
     world = scenario.make_world(seed)
-    states, yielding = [world.z.copy()], [world.yielding.copy()]
-    for _ in range(steps):
+    states, yielding, copies = [world.z.copy()], [world.yielding.copy()], {}
+    for k in range(steps):
+        if k in snapshots:
+            copies[k] = copy.deepcopy(world)
         hits = world.step(policy(world))
         states.append(world.z.copy())
         yielding.append(world.yielding.copy())
         if hits:
             break
-    return np.array(states), np.array(yielding), world
+    return np.array(states), np.array(yielding), world, copies
+
+
+@dataclass(frozen=True)
+class Intervention:
+    """A counterfactual ego from a branch point on: steer to y_target (m) and track v_target (m/s), lane-keeping law."""
+
+    y_target: float
+    v_target: float
+
+    def __call__(self, world):
+        """Control [delta (rad), a (m/s^2)] for the ego now."""
+        z = world.z[0]
+        a_follow = world.idm_to(0, world.leader(0, world.road.lane_of(z[1])))  # never drive into a car ahead on purpose
+        return np.array([steer_to(z, self.y_target, world.params, k_y=0.8), float(np.clip(min(self.v_target - z[3], a_follow), -3.0, 2.0))])
+
+
+def interventions(rng, world, y_ref, ranges):
+    """The counterfactual egos of one branch point: push on towards y_ref, back off to the start lane, change speed."""
+    y, v = float(world.z[0, 1]), float(world.z[0, 3])
+    push = Intervention(float(rng.uniform(*ranges["y_push"])) * y_ref, v)
+    back = Intervention(0.0, v)
+    speed = Intervention(y, max(0.0, v + float(rng.choice([-1.0, 1.0]) * rng.uniform(*ranges["dv"]))))
+    return [push, back, speed]
+
+
+def can_interact(world, scenario, reach):
+    """Whether what the ego does next can matter to the others: it is before x_ref, not yet in the target lane, and a
+    target-lane car is within `reach` metres along the road (where random branch points would mostly be idle)."""
+    ego, lane = world.z[0], world.road.lane_of(scenario.y_ref)
+    near = (np.abs(world.z[1:, 0] - ego[0]) <= reach) & (world.road.lane_of(world.z[1:, 1]) == lane)
+    return bool(ego[0] < scenario.x_ref and world.road.lane_of(ego[1]) != lane and near.any())
+
+
+def branch(world, ego, steps):
+    """Drive a copy of `world` on for `steps` steps with the ego controller `ego`: states (steps+1, M, 4), yielding."""
+    world = copy.deepcopy(world)
+    states, yielding = [world.z.copy()], [world.yielding.copy()]
+    for _ in range(steps):
+        hits = world.step(ego(world))
+        states.append(world.z.copy())
+        yielding.append(world.yielding.copy())
+        if hits:
+            break
+    return np.array(states), np.array(yielding)
 
 
 def windows(xy, yielding, t_obs: int):
@@ -51,25 +105,40 @@ def episode_seeds(seed: int, episodes: int):
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(episodes)]
 
 
-def explore(scenario, policy_ranges, seed, steps):
-    """One seeded episode with a sampled exploratory ego: states, yielding flags, final world, the policy."""
+def explore(scenario, policy_ranges, seed, steps, snapshots=()):
+    """One seeded episode with a sampled exploratory ego: states, yielding flags, final world, world copies, the policy."""
     world0 = scenario.make_world(seed)
     policy = sample_policy(np.random.default_rng([seed, 1]), scenario.y_ref, float(world0.z[1:, 3].mean()), policy_ranges)
-    return (*rollout(scenario, policy, seed, steps), policy)
+    return (*rollout(scenario, policy, seed, steps, snapshots), policy)
 
 
-def episode(scenario, policy_ranges, seed, steps, t_obs):
-    """One seeded episode's windows and what happened in it."""
-    states, yielding, world, policy = explore(scenario, policy_ranges, seed, steps)
-    X, Y, last, y_flags = windows(states[..., :2], yielding, t_obs)
+def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs):
+    """One seeded episode's windows (its own run and its counterfactual branches) and what happened in it."""
+    rng = np.random.default_rng([seed, 2])
+    t_pred, n = branch_cfg["steps"], branch_cfg["points"]
+    candidates = set(range(t_obs - 1, steps - t_pred + 1)) if n else set()
+    states, yielding, world, copies, policy = explore(scenario, policy_ranges, seed, steps, candidates)
+    eligible = [k for k, w in sorted(copies.items()) if can_interact(w, scenario, branch_cfg["reach"])]
+    points = sorted(rng.choice(eligible, size=min(n, len(eligible)), replace=False).tolist()) if eligible else []
+    parts = [(*windows(states[..., :2], yielding, t_obs), 0)]
+    for b, w in ((k, copies[k]) for k in points):
+        for ego in interventions(rng, w, scenario.y_ref, branch_cfg):
+            s_b, y_b = branch(w, ego, t_pred)
+            X, Y, last, flags = windows(np.concatenate([states[:b, :, :2], s_b[..., :2]]),
+                                        np.concatenate([yielding[:b], y_b]), t_obs)
+            keep = last >= b  # earlier windows are the episode's own
+            parts.append((X[keep], Y[keep], last[keep], flags[keep], len(parts)))
+    X, Y, last, flags = (np.concatenate([p[k] for p in parts]) for k in range(4))
+    branch_id = np.concatenate([np.full(len(p[0]), p[4]) for p in parts])
     stats = {"collided": bool(world.collisions), "attempts": policy.attempts, "any_yield": bool(yielding.any()),
-             "merged": bool(world.road.lane_of(world.z[0, 1]) == world.road.lane_of(scenario.y_ref))}
-    return X, Y, last, y_flags, stats
+             "merged": bool(world.road.lane_of(world.z[0, 1]) == world.road.lane_of(scenario.y_ref)),
+             "branches": len(parts) - 1}
+    return X, Y, last, flags, branch_id, stats
 
 
-def build(scenario: Scenario, policy_ranges: dict, episodes: int, steps: int, t_obs: int, seed: int,
+def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: int, steps: int, t_obs: int, seed: int,
           split_fractions=(0.8, 0.1, 0.1), n_jobs: int = 1):
-    """Roll `episodes` seeded episodes out and split their windows train/val/test by episode."""
+    """Roll `episodes` seeded episodes (and their branches) out and split their windows train/val/test by episode."""
     order = np.random.default_rng(seed).permutation(episodes)
     n_train = int(round(split_fractions[0] * episodes))
     n_val = int(round(split_fractions[1] * episodes))
@@ -77,7 +146,7 @@ def build(scenario: Scenario, policy_ranges: dict, episodes: int, steps: int, t_
     if min(len(e) for e in which.values()) == 0:
         raise UserError(f"dataset.episodes={episodes} leaves a split empty with dataset.split={list(split_fractions)}")
     results = Parallel(n_jobs=n_jobs)(
-        delayed(episode)(scenario, policy_ranges, s, steps, t_obs) for s in episode_seeds(seed, episodes))
+        delayed(episode)(scenario, policy_ranges, branch_cfg, s, steps, t_obs) for s in episode_seeds(seed, episodes))
     splits = {}
     for name, eps in which.items():
         eps = np.sort(eps)
@@ -88,8 +157,9 @@ def build(scenario: Scenario, policy_ranges: dict, episodes: int, steps: int, t_
             "episode": np.concatenate([np.full(len(p[0]), e) for e, p in zip(eps, parts)]).astype(np.int32),
             "step": np.concatenate([p[2] for p in parts]).astype(np.int32),
             "yielding": np.concatenate([p[3] for p in parts]).astype(bool),
+            "branch": np.concatenate([p[4] for p in parts]).astype(np.int32),
         }
-    return splits, [r[4] for r in results]
+    return splits, [r[5] for r in results]
 
 
 def summarize(stats: list) -> dict:
@@ -101,6 +171,7 @@ def summarize(stats: list) -> dict:
         "collisions": int(sum(s["collided"] for s in stats)),
         "merged": int(sum(s["merged"] for s in stats)),
         "episodes_with_yield": int(sum(s["any_yield"] for s in stats)),
+        "branches": int(sum(s["branches"] for s in stats)),
         "nudges": len(closed),
         "nudges_opened_gap": int(sum(a[1] for a in closed)),
         "nudge_open_frac": float(np.mean([a[1] for a in closed])) if closed else 0.0,
@@ -174,14 +245,15 @@ def load(root, split: str) -> dict:
 def make(cfg_dataset, scenario, root: Path, config_yaml: str) -> dict:
     """Build and save the dataset described by `cfg_dataset`; returns meta (with build time and statistics)."""
     t0 = time.perf_counter()
-    splits, stats = build(scenario, dict(cfg_dataset.policy), cfg_dataset.episodes, cfg_dataset.steps,
+    splits, stats = build(scenario, dict(cfg_dataset.policy), dict(cfg_dataset.branches), cfg_dataset.episodes, cfg_dataset.steps,
                           cfg_dataset.T_obs, cfg_dataset.seed, tuple(cfg_dataset.split), cfg_dataset.n_jobs)
     meta = {
         "name": cfg_dataset.name, "seed": cfg_dataset.seed, "T_obs": cfg_dataset.T_obs, "T_pred": 1,
         "N": int(splits["train"]["X"].shape[2] - 1), "dt": scenario.params.dt, "units": "m",
         "slots": "0 = ego; 1..N = other cars front to back by x at the episode start",
         "shapes": {"X": "(n, T_obs, N+1, 2) past xy", "Y": "(n, N+1, 2) next xy", "episode": "(n,)",
-                   "step": "(n,) last observed step", "yielding": "(n, N+1) hidden: car brakes for the ego"},
+                   "step": "(n,) last observed step", "yielding": "(n, N+1) hidden: car brakes for the ego",
+                   "branch": "(n,) 0 = the episode's own run, k >= 1 its k-th counterfactual branch"},
         "stats": summarize(stats), "build_s": round(time.perf_counter() - t0, 2), "config": config_yaml,
     }
     return save(root, splits, meta)

@@ -6,6 +6,9 @@ import numpy as np
 from data import bicycle
 from data.drivers import IDMDriver
 
+MEMORY = 20  # past states kept for perception, enough for reaction delays up to 4 s at dt = 0.2 s
+YIELD_LABEL = 0.1  # a driver whose response exceeds this counts as yielding in the dataset's hidden label (-)
+
 
 @dataclass(frozen=True)
 class Road:
@@ -67,8 +70,9 @@ class World:
     mobil_period: float = 1.0  # seconds between a driver's lane-change decisions
     t: float = 0.0
     target_lane: np.ndarray = None
-    noticed_at: np.ndarray = None  # time each driver first noticed the current intrusion (nan: none)
-    yielding: np.ndarray = None  # (SLOTS,) whether each driver brakes for the ego at this step
+    response: np.ndarray = None  # (SLOTS,) how far each yielding driver has blended into braking for the ego, 0..1
+    yielding: np.ndarray = None  # (SLOTS,) whether each driver brakes for the ego at this step (response above YIELD_LABEL)
+    seen: list = None  # past states z, newest last, from which drivers perceive the ego with their reaction delay
     collisions: list = field(default_factory=list)  # (time s, i, j) of every body overlap seen
 
     def __post_init__(self):
@@ -76,8 +80,9 @@ class World:
         self.z = np.asarray(self.z, dtype=float)
         if self.target_lane is None:
             self.target_lane = self.road.lane_of(self.z[:, 1])
-        self.noticed_at = np.full(m, np.nan)
+        self.response = np.zeros(m)
         self.yielding = np.zeros(m, dtype=bool)
+        self.seen = [self.z.copy()]
 
     @property
     def positions(self):
@@ -114,30 +119,41 @@ class World:
         gap = self.z[leader, 0] - self.z[j, 0] - self.road.car_length
         return d.acceleration(self.z[j, 3], gap, self.z[leader, 3])
 
-    def intrudes(self, j):
-        """Whether the ego, still outside driver j's lane, is beside it and ahead within view (the nudge)."""
+    def perceived(self, j):
+        """The state z (SLOTS, 4) driver j acts on: reaction_delay ago (the oldest recorded one early in an episode)."""
+        back = int(round(self.drivers[j - 1].reaction_delay / self.params.dt))
+        return self.seen[max(0, len(self.seen) - 1 - back)]
+
+    def encroachment(self, j, z):
+        """How far the ego encroaches on driver j's lane in state z, 0..1: depth past d_react (full after d_ramp)
+        times how far it is ahead (full after x_ramp); 0 once it is in the lane (then it is a leader) or out of view."""
+        d = self.drivers[j - 1]
         own = self.target_lane[j]
-        ego = self.z[0]
-        if self.road.lane_of(ego[1]) == own:
-            return False
-        dx = ego[0] - self.z[j, 0]
-        return abs(ego[1] - self.road.centre(own)) < self.drivers[j - 1].d_react and 0.0 < dx < self.drivers[j - 1].view
+        dx = z[0, 0] - z[j, 0]
+        if self.road.lane_of(z[0, 1]) == own or not dx < d.view:
+            return 0.0
+        depth = (d.d_react - abs(z[0, 1] - self.road.centre(own))) / d.d_ramp
+        return float(np.clip(depth, 0.0, 1.0) * np.clip(dx / d.x_ramp, 0.0, 1.0))
+
+    def respond(self):
+        """Advance every yielding driver's response one step towards its perceived encroachment (first-order lag,
+        time constant t_ramp); stubborn drivers keep 0."""
+        for j in range(1, len(self.z)):
+            d = self.drivers[j - 1]
+            w = self.encroachment(j, self.perceived(j)) if self.will_yield[j] else 0.0
+            self.response[j] += min(1.0, self.params.dt / d.t_ramp) * (w - self.response[j])
+        self.yielding = self.response > YIELD_LABEL
 
     def acceleration(self, j):
-        """Driver j's acceleration (m/s^2): IDM to its leader, and if it yields, also to the ego projected into its lane."""
+        """Driver j's acceleration (m/s^2): IDM to its leader, blended by its response towards IDM behind the ego
+        (projected into its lane, braking capped at b_yield) while the ego is ahead of it."""
         d = self.drivers[j - 1]
         lanes = {int(self.road.lane_of(self.z[j, 1])), int(self.target_lane[j])}  # both while changing lane
         a = min(self.idm_to(j, self.leader(j, lane)) for lane in lanes)
-        self.yielding[j] = False
-        if not self.intrudes(j):
-            self.noticed_at[j] = np.nan
+        if self.response[j] == 0.0:
             return a
-        if np.isnan(self.noticed_at[j]):
-            self.noticed_at[j] = self.t
-        if self.will_yield[j] and self.t - self.noticed_at[j] >= d.reaction_delay - 1e-9:
-            self.yielding[j] = True
-            a = min(a, max(self.idm_to(j, 0), -d.b_yield))
-        return a
+        ahead = np.clip((self.z[0, 0] - self.z[j, 0]) / d.x_ramp, 0.0, 1.0)  # nothing to yield to once the ego is behind
+        return a + self.response[j] * ahead * (min(a, max(self.idm_to(j, 0), -d.b_yield)) - a)
 
     def mobil(self, j, a_now):
         """The lane MOBIL picks for driver j: the lane to its left (away from the ego's lane) or its own.
@@ -169,6 +185,7 @@ class World:
         u = np.zeros((len(self.z), 2))
         u[0] = ego_u
         decide = self.lane_change and int(round(self.t / p.dt)) % max(1, int(round(self.mobil_period / p.dt))) == 0
+        self.respond()
         for j in range(1, len(self.z)):
             a = self.acceleration(j)
             if decide and abs(self.z[j, 1] - self.road.centre(self.target_lane[j])) < 0.3:
@@ -178,6 +195,7 @@ class World:
         z_next[1:, 3] = np.maximum(z_next[1:, 3], 0.0)  # human drivers stop, they do not reverse
         self.z = z_next
         self.t += p.dt
+        self.seen = self.seen[-MEMORY:] + [z_next.copy()]
         hits = [(i, j) for i in range(len(self.z)) for j in range(i + 1, len(self.z)) if overlap(self.z[i], self.z[j], self.road)]
         self.collisions += [(self.t, i, j) for i, j in hits]
         return hits

@@ -37,6 +37,39 @@ class WindowData(L.LightningDataModule):
         return DataLoader(self.splits["val"], batch_size=4 * self.batch_size)
 
 
+class SequenceData(WindowData):
+    """Train/val windows with the recorded futures of their run for a multi-step rollout loss: (window, ego future
+    (H, 2), others' future (H, N, 2), mask (H,)); where the run ends early the ego continues at constant velocity
+    and the mask is False."""
+
+    def __init__(self, dataset_dir, batch_size, horizon):
+        """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only)."""
+        super().__init__(dataset_dir, batch_size)
+        self.horizon = horizon
+
+    def tensors(self, arrays):
+        """The split's windows with their futures, float32."""
+        X, ego, others, mask = futures(arrays, self.horizon)
+        return TensorDataset(*(torch.from_numpy(a) for a in (X, ego.astype(np.float32), others.astype(np.float32), mask)))
+
+
+def futures(a, horizon):
+    """Every window of split arrays `a` with the next `horizon` recorded steps of its run (episode and branch):
+    X (n, T_obs, SLOTS, 2), ego (n, H, 2), others (n, H, N, 2), mask (n, H) of the steps the run reached."""
+    runs = list(zip(a["episode"], a["branch"], a["step"]))
+    key = {r: i for i, r in enumerate(runs)}
+    idx = np.array([[key.get((e, b, s + k), -1) for k in range(horizon)] for e, b, s in runs]).reshape(len(runs), horizon)
+    mask = np.cumprod(idx >= 0, axis=1).astype(bool)  # a run has no holes, but stop at the first missing step anyway
+    Y = a["Y"][np.where(mask, idx, 0)].astype(np.float64)  # (n, H, SLOTS, 2)
+    ego = Y[:, :, 0]
+    last, step = a["X"][:, -1, 0].astype(np.float64), (a["X"][:, -1, 0] - a["X"][:, -2, 0]).astype(np.float64)
+    for k in range(horizon):  # beyond a run's end: the ego goes on at its last displacement, so windows stay plausible
+        prev = ego[:, k - 1] if k else last
+        prev2 = (ego[:, k - 2] if k > 1 else last) if k else last - step
+        ego[:, k] = np.where(mask[:, k, None], ego[:, k], 2 * prev - prev2)
+    return a["X"], ego, Y[:, :, 1:] * mask[:, :, None, None], mask
+
+
 class DistillData(WindowData):
     """Windows relabelled by a teacher (next positions and v^T J), widened with planner-like copies of every window."""
 

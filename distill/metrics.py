@@ -12,10 +12,11 @@ from core.rollout import rollout
 
 def rollout_cases(a: dict, t_p: int):
     """history (n, T_obs, SLOTS, 2), ego future (n, T_p, 2), others' future (n, T_p, N, 2), yield flag (n,) from split arrays."""
-    key = {(e, s): i for i, (e, s) in enumerate(zip(a["episode"], a["step"]))}
+    runs = list(zip(a["episode"], a["branch"], a["step"]))  # a counterfactual branch is a run of its own
+    key = {r: i for i, r in enumerate(runs)}
     starts, futures = [], []
-    for i, (e, s) in enumerate(zip(a["episode"], a["step"])):
-        chain = [key.get((e, s + k)) for k in range(t_p)]
+    for i, (e, b, s) in enumerate(runs):
+        chain = [key.get((e, b, s + k)) for k in range(t_p)]
         if None not in chain:
             starts.append(i)
             futures.append(a["Y"][chain])

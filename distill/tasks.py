@@ -7,7 +7,7 @@ import lightning as L
 import torch
 from hydra.utils import instantiate
 
-from core.rollout import SLOTS, T_OBS
+from core.rollout import SLOTS, T_OBS, rollout
 
 
 class _Task(L.LightningModule):
@@ -40,18 +40,32 @@ class _Task(L.LightningModule):
 
 
 class TeacherTask(_Task):
-    """Huber loss of the other cars' next-position error in units of `scale_m` metres (collisions make heavy tails)."""
+    """Huber loss of the other cars' one-step error in units of `scale_m` metres (collisions make heavy tails), plus
+    `rollout_weight` x the Huber loss in units of `rollout_scale_m` of the Remark-2 rollout over the recorded horizon
+    fed the recorded ego future: how the others answer the ego's moves is what the planner asks of the teacher. The
+    rollout unit is wide so that the term is quadratic over the range of real responses and fits their mean, where
+    a centimetre unit (an L1 loss in effect) would fit the median and miss the rare hard-braking answers."""
 
-    def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float):
-        """scale_m: the loss unit (m)."""
+    def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, rollout_weight: float,
+                 rollout_scale_m: float):
+        """scale_m, rollout_scale_m: loss units (m) of the one-step and rollout terms; rollout_weight (-)."""
         super().__init__(net, lr, weight_decay)
 
     def _step(self, batch, stage):
-        """Loss on (window, next) and the logged ADE of the other cars (m)."""
-        X, Y = batch
-        err = (self.net(X) - Y)[:, 1:]
-        loss = torch.nn.functional.huber_loss(err / self.hparams.scale_m, torch.zeros_like(err))
-        self._log(stage, loss=loss, ade_m=err.norm(dim=-1).mean())
+        """Loss on (window, ego future, others' future, mask) and the logged one-step and rollout ADE (m)."""
+        X, ego, others, mask = batch
+        horizon = ego.shape[1] if self.hparams.rollout_weight else 1
+        mask = mask[:, :horizon, None, None]
+        err = (rollout(self.net, X, ego[:, :horizon])[:, :, 1:] - others[:, :horizon]) * mask  # (B, H, N, 2) m
+        loss = torch.nn.functional.huber_loss(err[:, 0] / self.hparams.scale_m, torch.zeros_like(err[:, 0]))
+        dist = err.norm(dim=-1).mean(-1)  # (B, H) m
+        values = {"ade_m": dist[:, 0].mean()}
+        if horizon > 1:
+            later = err[:, 1:] / self.hparams.rollout_scale_m
+            huber = torch.nn.functional.huber_loss(later, torch.zeros_like(later), reduction="sum")
+            loss = loss + self.hparams.rollout_weight * huber / mask[:, 1:].expand_as(later).sum().clamp(min=1)
+            values["ade_rollout_m"] = dist.sum() / mask.sum()
+        self._log(stage, loss=loss, **values)
         return loss
 
 

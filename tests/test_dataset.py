@@ -16,11 +16,12 @@ from data.plot import plot_episode
 from data.policies import ProbePolicy
 
 POLICY = dict(compose_cfg("make_dataset").dataset.policy)
+BRANCHES = dict(compose_cfg("make_dataset").dataset.branches)
 
 
 def build(seed, episodes=10):
     sc = instantiate(compose_cfg("make_dataset").scenario, _convert_="all")
-    return dataset.build(sc, POLICY, episodes=episodes, steps=20, t_obs=8, seed=seed)[0]
+    return dataset.build(sc, POLICY, BRANCHES, episodes=episodes, steps=20, t_obs=8, seed=seed)[0]
 
 
 def test_same_seed_same_data_other_seed_other_data():
@@ -29,6 +30,24 @@ def test_same_seed_same_data_other_seed_other_data():
         for k in a[split]:
             np.testing.assert_array_equal(a[split][k], b[split][k])
     assert not np.array_equal(a["train"]["X"][:50], c["train"]["X"][:50])
+
+
+def test_branches_restart_the_episode_and_drive_the_ego_differently():
+    a = build(5)["train"]
+    n_branch = BRANCHES["points"] * 3  # push on, back off, change speed
+    for e in np.unique(a["episode"]):
+        own = (a["episode"] == e) & (a["branch"] == 0)
+        branches = np.unique(a["branch"][a["episode"] == e])[1:]
+        assert list(branches) == list(range(1, n_branch + 1))
+        by_step = dict(zip(a["step"][own], np.flatnonzero(own)))
+        ego_moved = []
+        for b in branches:
+            rows = np.flatnonzero((a["episode"] == e) & (a["branch"] == b))
+            first = rows[np.argmin(a["step"][rows])]
+            assert len(rows) <= BRANCHES["steps"]
+            np.testing.assert_array_equal(a["X"][first], a["X"][by_step[a["step"][first]]])  # same past as the episode
+            ego_moved.append(np.abs(a["Y"][rows[-1], 0] - a["Y"][by_step[a["step"][rows[-1]]], 0]).max())
+        assert max(ego_moved) > 0.3  # the interventions take the ego elsewhere than the episode's own run
 
 
 def test_too_few_episodes_for_the_splits_is_a_user_error():
@@ -44,7 +63,7 @@ def test_windows_are_consistent_with_the_episode_and_splits_disjoint(tiny_datase
     assert sum(len(e) for e in episodes) == meta["stats"]["episodes"]
     tr = splits["train"]
     # consecutive windows of one episode overlap: the target of step t is the last observation of step t+1
-    same = (tr["episode"][1:] == tr["episode"][:-1]) & (tr["step"][1:] == tr["step"][:-1] + 1)
+    same = (tr["episode"][1:] == tr["episode"][:-1]) & (tr["branch"][1:] == tr["branch"][:-1]) & (tr["step"][1:] == tr["step"][:-1] + 1)
     assert same.sum() > 100
     np.testing.assert_allclose(tr["Y"][:-1][same], tr["X"][1:][same][:, -1])
     # others move forward about dt * speed (m), never backwards
@@ -118,6 +137,6 @@ def test_bad_overrides_fail_clearly(tmp_path):
 
 def test_episode_plot_is_a_png(tmp_path):
     sc = instantiate(compose_cfg("make_dataset", ["scenario=two_lane"]).scenario, _convert_="all")
-    states, _, world = dataset.rollout(sc, ProbePolicy(y_ref=4.0, t_start=0.2), 0, 20)
+    states, _, world, _ = dataset.rollout(sc, ProbePolicy(y_ref=4.0, t_start=0.2), 0, 20)
     plot_episode(states, world.road, tmp_path / "e.png", "two_lane", sc.x_ref)
     assert (tmp_path / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
