@@ -21,9 +21,9 @@ class QP:
         P = sparse.csc_matrix(np.triu(P) if isinstance(P, np.ndarray) else sparse.triu(P))
         P.sort_indices()
         self.P_rows, self.P_cols = P.indices, np.repeat(np.arange(P.shape[1]), np.diff(P.indptr))
+        self.l, self.u = np.asarray(l, float), np.asarray(u, float)
         self.solver = osqp.OSQP()
-        self.solver.setup(P, np.asarray(q, float), self.G, np.asarray(l, float), np.asarray(u, float), verbose=False,
-                          warm_starting=True, **settings)
+        self.solver.setup(P, np.asarray(q, float), self.G, self.l, self.u, verbose=False, warm_starting=True, **settings)
 
     def set_P(self, P_dense):
         """New values of P (a dense symmetric array) on the sparsity it was set up with."""
@@ -32,6 +32,10 @@ class QP:
     def solve(self, q=None, l=None, u=None, Gx=None):
         """Optimal x after updating any of q, l, u and the constraint matrix values Gx (same sparsity, CSC order)."""
         data = {k: np.asarray(v, float) for k, v in (("q", q), ("l", l), ("u", u), ("Ax", Gx)) if v is not None}
+        lo, hi = data.get("l", self.l), data.get("u", self.u)
+        if np.any(lo > hi):  # OSQP would refuse the update with a printed error and re-solve the previous bounds
+            raise SolverFailure(f"bounds cross (l > u at {int(np.sum(lo > hi))} rows)")
+        self.l, self.u = lo, hi
         if data:
             self.solver.update(**data)
         result = self.solver.solve(raise_error=False)

@@ -5,6 +5,7 @@ import copy
 import numpy as np
 import pytest
 import torch
+from scipy import sparse
 from test_surrogate import smooth_student
 
 from bench.states import collect
@@ -12,7 +13,7 @@ from core.jobs import UserError
 from core.rollout import SLOTS, T_OBS, chain_rule, ego_xy, rollout_jacobian
 from planner import admm, mpc
 from planner.gradients import Surrogate
-from planner.qp import BoxQP
+from planner.qp import QP, BoxQP, SolverFailure
 from planner.safety import Safety
 from planner.setup import make
 from surrogate import models
@@ -171,3 +172,12 @@ def test_rollout_export_of_another_horizon_or_missing_is_refused(tmp_path):
     with pytest.raises(UserError, match="surrogate_rollout.onnx not found"):
         models.load(tmp_path, rollout=True, T_p=8)
     assert models.load(tmp_path).rollout_session is None  # the per-window path needs no rollout export
+
+
+def test_crossing_bounds_are_a_solver_failure_not_a_silent_stale_solve():
+    """OSQP keeps the previous bounds when an update has l > u; the QP wrapper must refuse instead."""
+    qp = QP(np.eye(2), np.zeros(2), sparse.eye(2, format="csc"), -np.ones(2), np.ones(2), {})
+    assert np.allclose(qp.solve(q=np.array([-5.0, 0.0])), [1.0, 0.0], atol=1e-3)
+    with pytest.raises(SolverFailure, match="bounds cross"):
+        qp.solve(l=np.array([2.0, -1.0]))
+    assert np.allclose(qp.solve(l=np.array([0.5, -1.0]), q=np.zeros(2)), [0.5, 0.0], atol=1e-3)
