@@ -17,7 +17,7 @@ import numpy as np
 from core.jobs import UserError
 from core.rollout import T_OBS
 from data import bicycle
-from data.dataset import episode_seeds, explore
+from data.dataset import can_interact, episode_seeds, explore
 from data.world import World, steer_to
 from planner.closed_loop import backfill
 
@@ -65,14 +65,6 @@ def redraw(world: World, rng: np.random.Generator) -> World:
     return world
 
 
-def reachable(world: World, x_ref: float, target_lane: int, reach: float) -> bool:
-    """Whether the ego can interact now: before x_ref, not in the target lane, a target-lane car within `reach` m along x."""
-    ego = world.z[0]
-    lanes = world.road.lane_of(world.z[1:, 1])
-    near = np.abs(world.z[1:, 0] - ego[0]) <= reach
-    return bool(ego[0] < x_ref and world.road.lane_of(ego[1]) != target_lane and np.any(near & (lanes == target_lane)))
-
-
 def ego_controls(z0, y_targets, v_target, params: bicycle.BicycleParams, k_y, a_bounds):
     """Controls (T_p, 2) that steer the ego alone from state z0 to y_targets[k] (m) at step k and track v_target (m/s).
 
@@ -112,7 +104,7 @@ def branch_state(scenario, policy_ranges, seed: int, branch, rng: np.random.Gene
     """
     candidates = range(branch.min_steps, branch.max_steps + 1)
     states, _, _, copies, _ = explore(scenario, policy_ranges, seed, branch.max_steps + 1, set(candidates))
-    ok = [k for k, w in sorted(copies.items()) if reachable(w, scenario.x_ref, scenario.target_lane, branch.reach)]
+    ok = [k for k, w in sorted(copies.items()) if can_interact(w, scenario, branch.reach)]
     if not ok:
         return None
     k = int(rng.choice(ok))
