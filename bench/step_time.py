@@ -38,12 +38,12 @@ class Frozen:
         self.values0, self.grads, self.ego0 = values, grads, ego
 
     def values(self, history, ego_futures):
-        """values0 + d values / d ego . (ego - ego0), (B, T_p, M, 2)."""
+        """values0 + d values / d ego . (ego - ego0), (B, T_p, SLOTS, 2)."""
         d = np.asarray(ego_futures, float) - self.ego0
         return self.values0 + np.einsum("tmkse,bse->btmk", self.grads, d)
 
     def jacobian(self, history, ego_future):
-        """The affine values and the frozen Jacobian (T_p, M, 2, T_p, 2)."""
+        """The affine values and the frozen Jacobian (T_p, SLOTS, 2, T_p, 2)."""
         return self.values(history, np.asarray(ego_future)[None])[0], self.grads
 
 

@@ -1,7 +1,7 @@
 """Gradient sources behind one interface: rollout values of the others and their derivative w.r.t. the ego plan.
 
-Each source offers `values(history, ego_futures)` (B, T_p, M, 2) for a batch of ego plans and
-`jacobian(history, ego_future)` -> values (T_p, SLOTS, 2), d values / d ego xy (T_p, M, 2, T_p, 2), metres throughout.
+Each source offers `values(history, ego_futures)` (B, T_p, SLOTS, 2) for a batch of ego plans and
+`jacobian(history, ego_future)` -> values (T_p, SLOTS, 2), d values / d ego xy (T_p, SLOTS, 2, T_p, 2), metres throughout.
 Built by the `gradients` config group (conf/gradients/), each option naming its class, predictor and settings.
 """
 import numpy as np
@@ -16,7 +16,7 @@ class Source:
         self.name, self.predictor = name, predictor
 
     def values(self, history, ego_futures):
-        """Predicted xy (B, T_p, M, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
+        """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
         ego_futures = np.asarray(ego_futures, dtype=float)
         batch = np.broadcast_to(np.asarray(history, dtype=float), (len(ego_futures),) + np.shape(history))
         return np.asarray(rollout(self.phi, batch, ego_futures), dtype=float)
@@ -32,7 +32,7 @@ class ExactLocal(Source):
     joint = True  # phi_jac gives the values too, at a small multiple of phi's cost
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2)."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2)."""
         return rollout_jacobian(self.predictor.phi_jac, history, ego_future)
 
 
@@ -46,7 +46,7 @@ class Surrogate(Source):
         self.joint = rollout or surrogate.fused  # values and J come from one onnxruntime call: see Safety.trial
 
     def values(self, history, ego_futures):
-        """Predicted xy (B, T_p, M, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
+        """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
         if not self.rollout:
             return super().values(history, ego_futures)
         ego_futures = np.asarray(ego_futures, dtype=float)
@@ -59,7 +59,7 @@ class Surrogate(Source):
         return self.surrogate.phi_jac(window)[0] if self.surrogate.fused else self.predictor.phi(window)
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) with the surrogate's local Jacobians."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2) with the surrogate's local Jacobians."""
         if self.rollout:
             values, grads = self.surrogate.rollout(np.asarray(history)[None], np.asarray(ego_future)[None])
             return values[0], grads[0]
@@ -82,7 +82,7 @@ class Autodiff(Source):
         self.dtype = params[0].dtype if params else torch.float64
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by autodiff."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2) by autodiff."""
         torch = self.torch
         hist = torch.as_tensor(np.asarray(history), dtype=self.dtype)[None]
 
@@ -103,12 +103,12 @@ class CentralDifferences(Source):
         self.h = h
 
     def jacobian(self, history, ego_future):
-        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, M, 2, T_p, 2) by central differences."""
+        """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2) by central differences."""
         ego_future = np.asarray(ego_future, dtype=float)
         n = ego_future.size
         steps = np.eye(n).reshape(n, *ego_future.shape) * self.h
         batch = np.concatenate([ego_future[None], ego_future + steps, ego_future - steps])
         out = self.values(history, batch)
-        grads = (out[1:n + 1] - out[n + 1:]) / (2 * self.h)  # (n, T_p, M, 2)
+        grads = (out[1:n + 1] - out[n + 1:]) / (2 * self.h)  # (n, T_p, SLOTS, 2)
         return out[0], np.moveaxis(grads, 0, -1).reshape(out.shape[1:] + ego_future.shape)
 

@@ -41,7 +41,7 @@ def relative(a, b):
 def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R):
     """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err, means over the states.
 
-    windows (n, T_p, T_obs, SLOTS, 2), nexts (n, T_p, M, 2) and the exact J (n, T_p, SLOTS*2, T_obs*SLOTS*2) are the source's on the
+    windows (n, T_p, T_obs, SLOTS, 2), nexts (n, T_p, SLOTS, 2) and the exact J (n, T_p, SLOTS*2, T_obs*SLOTS*2) are the source's on the
     windows its rollout visits; each of J_hats {name: (n, T_p, SLOTS*2, T_obs*SLOTS*2)} replaces J in the same rollout.
     """
     scores = {name: {"grad_cosine": [], "grad_rel_err": [], "react_cosine": [], "react_rel_err": []} for name in J_hats}

@@ -34,6 +34,6 @@ def central(phi, windows, h, batch=64):
 
 def planner_windows(phi, history, ego_future):
     """Every window the Remark 2 recursion visits (B*T_p, T_obs, SLOTS, 2) when the ego follows `ego_future` (B, T_p, 2)."""
-    track = np.concatenate([history, rollout(phi, history, ego_future)], axis=1)  # (B, T_obs + T_p, M, 2)
+    track = np.concatenate([history, rollout(phi, history, ego_future)], axis=1)  # (B, T_obs + T_p, SLOTS, 2)
     t_obs, t_p = history.shape[1], ego_future.shape[1]
     return np.stack([track[:, tau:tau + t_obs] for tau in range(t_p)], axis=1).reshape((-1,) + history.shape[1:])
