@@ -9,8 +9,11 @@ Sources are timed round-robin state by state, so a busy machine slows them alike
 is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
 own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out below IPOPT's).
 """
+import cProfile
 import logging
+import pstats
 import time
+from collections import defaultdict
 
 import hydra
 import numpy as np
@@ -132,6 +135,43 @@ def cost_gap(J_admm, J_ipopt) -> np.ndarray:
     return (J_admm[ok] - J_ipopt[ok]) / np.abs(J_ipopt[ok])
 
 
+def part(key) -> str:
+    """The part of an MPC step a profiled function belongs to: its library, or its file in this repository."""
+    file, _, name = key
+    if file == "~":  # a C function: name it by the extension it belongs to
+        return next((lib for lib in ("onnxruntime", "osqp", "torch") if lib in name), "numpy / builtins")
+    if "site-packages/" in file:
+        return file.split("site-packages/")[1].split("/")[0]
+    tail = file.split("/")
+    return "/".join(tail[-2:])
+
+
+def profile(step, src, s_of, states) -> tuple[dict, dict]:
+    """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP solves: per
+    step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
+    prof = cProfile.Profile()
+    for state in states:
+        prof.runcall(step, s_of(state.scenario), state.obs, src, state.warm)
+    stats = pstats.Stats(prof).stats  # {(file, line, name): (primitive calls, calls, own s, cumulative s, callers)}
+    ms, calls = defaultdict(float), defaultdict(float)
+    for key, (_, n, own, _, _) in stats.items():
+        ms[part(key)] += 1e3 * own / len(states)
+        if key[0] == "~" and "run" in key[2] and "onnxruntime" in key[2] or key[2] == "run" and "onnxruntime" in key[0]:
+            calls["onnxruntime calls"] += n / len(states)
+        if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
+            calls["OSQP solves"] += n / len(states)
+    return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
+
+
+def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
+    """The printed profile: the `top` parts by own time per step, then the call counts."""
+    total = sum(ms.values())
+    lines = [f"profile of {name}'s step (cProfile, {total:.1f} ms per step under the profiler; own time per part):"]
+    lines += [f"  {k:>32} {v:8.2f} ms {v / total:6.1%}" for k, v in list(ms.items())[:top]]
+    lines += [f"  {k}: {v:.1f} per step" for k, v in calls.items()]
+    return "\n".join(lines)
+
+
 def summary(timings: dict) -> dict:
     """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_iters_mean, <source>_fallbacks and the ratios."""
     out = {}
@@ -194,8 +234,13 @@ def run(cfg: DictConfig) -> dict:
                 st = next(st for st in states if st.scenario == scenario)
                 step(settings(scenario), st.obs, src, st.warm)
         timings = time_steps(srcs, states, cfg.step_time.repeats, others)
+        profiles = {name: profile(mpc.mpc_step, srcs[name], settings, states) for name in cfg.step_time.profile
+                    if name in srcs}
     metrics = summary(timings)
     log.info("\n%s", table(timings, srcs, metrics, cfg.step_time.repeats, states))
+    for name, (ms, calls) in profiles.items():
+        log.info("\n%s", profile_table(name, ms, calls))
+        metrics.update({f"profile_{name}_{k.replace(' ', '_').replace('/', '_')}": v for k, v in {**ms, **calls}.items()})
     log_bench("step_time", cfg, srcs, len(states), metrics)
     return metrics
 

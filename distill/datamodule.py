@@ -5,6 +5,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, TensorDataset
 
+from core.jobs import UserError
 from data import dataset
 from distill.perturb import planner_like
 
@@ -40,17 +41,52 @@ class WindowData(L.LightningDataModule):
 class SequenceData(WindowData):
     """Train/val windows with the recorded futures of their run for a multi-step rollout loss: (window, ego future
     (H, 2), others' future (H, N, 2), mask (H,)); where the run ends early the ego continues at constant velocity
-    and the mask is False."""
+    and the mask is False. With contrast_groups > 0 each training batch also carries that many branch groups (the
+    same past under the episode's own and its counterfactual egos' futures, padded, with a member mask)."""
 
-    def __init__(self, dataset_dir, batch_size, horizon):
-        """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only)."""
+    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups):
+        """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only); contrast_groups:
+        branch groups per training batch (0: none)."""
         super().__init__(dataset_dir, batch_size)
-        self.horizon = horizon
+        self.horizon, self.contrast_groups = horizon, contrast_groups
 
     def tensors(self, arrays):
-        """The split's windows with their futures, float32."""
+        """The split's windows with their futures, float32; on the training split also its branch groups."""
         X, ego, others, mask = futures(arrays, self.horizon)
-        return TensorDataset(*(torch.from_numpy(a) for a in (X, ego.astype(np.float32), others.astype(np.float32), mask)))
+        arrays32 = (X, ego.astype(np.float32), others.astype(np.float32), mask)
+        if self.contrast_groups and "train" not in self.splits:
+            idx = groups(arrays)
+            if not len(idx):
+                raise UserError(f"{self.dataset_dir}: contrast_groups={self.contrast_groups} but the training split has no "
+                                "counterfactual branches (dataset.branches.points=0?)")
+            self.groups = TensorDataset(*(torch.from_numpy(a[np.maximum(idx, 0)]) for a in arrays32),
+                                        torch.from_numpy(idx >= 0))
+        return TensorDataset(*(torch.from_numpy(a) for a in arrays32))
+
+    def train_dataloader(self):
+        """Shuffled training batches; with contrast groups a dict {windows, groups} Lightning cycles together."""
+        windows = super().train_dataloader()
+        if not self.contrast_groups:
+            return windows
+        return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.contrast_groups, shuffle=True)}
+
+
+def groups(a) -> np.ndarray:
+    """Windows that share their past at a branch point, (G, S) indices padded with -1: the episode's own window at the
+    step where a branch starts and each branch's first window (same history, different ego futures)."""
+    first = {}  # (episode, branch) -> index of the branch's first window
+    for i, (e, b, s) in enumerate(zip(a["episode"].tolist(), a["branch"].tolist(), a["step"].tolist())):
+        if b and ((e, b) not in first or s < a["step"][first[e, b]]):
+            first[e, b] = i
+    own = {(e, s): i for i, (e, b, s) in enumerate(zip(a["episode"].tolist(), a["branch"].tolist(), a["step"].tolist()))
+           if b == 0}
+    members = {}
+    for (e, _), i in sorted(first.items()):
+        j = own.get((e, int(a["step"][i])))
+        if j is not None and np.array_equal(a["X"][i], a["X"][j]):  # a branch restarts from the episode's own state
+            members.setdefault(j, [j]).append(i)
+    width = max((len(m) for m in members.values()), default=0)
+    return np.array([m + [-1] * (width - len(m)) for m in members.values()], dtype=np.int64).reshape(-1, width)
 
 
 def futures(a, horizon):

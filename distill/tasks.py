@@ -47,12 +47,18 @@ class TeacherTask(_Task):
     a centimetre unit (an L1 loss in effect) would fit the median and miss the rare hard-braking answers."""
 
     def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, rollout_weight: float,
-                 rollout_scale_m: float):
-        """scale_m, rollout_scale_m: loss units (m) of the one-step and rollout terms; rollout_weight (-)."""
+                 rollout_scale_m: float, contrast_weight: float):
+        """scale_m, rollout_scale_m: loss units (m) of the one-step and rollout terms; rollout_weight, contrast_weight (-)."""
         super().__init__(net, lr, weight_decay)
 
     def _step(self, batch, stage):
-        """Loss on (window, ego future, others' future, mask) and the logged one-step and rollout ADE (m)."""
+        """Loss on (window, ego future, others' future, mask) and the logged one-step and rollout ADE (m); with branch
+        groups (a dict batch) plus contrast_weight x their contrast loss."""
+        if isinstance(batch, dict):
+            contrast = self.contrast(*batch["groups"])
+            loss = self._step(batch["windows"], stage) + self.hparams.contrast_weight * contrast
+            self._log(stage, contrast=contrast)
+            return loss
         X, ego, others, mask = batch
         horizon = ego.shape[1] if self.hparams.rollout_weight else 1
         mask = mask[:, :horizon, None, None]
@@ -67,6 +73,20 @@ class TeacherTask(_Task):
             values["ade_rollout_m"] = dist.sum() / mask.sum()
         self._log(stage, loss=loss, **values)
         return loss
+
+    def contrast(self, X, ego, others, mask, member):
+        """Mean squared error, in units of rollout_scale_m, of each branch group's rollouts about the group's mean: the
+        predicted difference the ego's choice makes against the recorded one, what react_corr and react_gain score.
+        X (G, S, T_obs, SLOTS, 2), ego (G, S, H, 2), others (G, S, H, N, 2), mask (G, S, H), member (G, S)."""
+        G, S = member.shape
+        pred = rollout(self.net, X.flatten(0, 1), ego.flatten(0, 1))[:, :, 1:].unflatten(0, (G, S))  # (G, S, H, N, 2)
+        w = (member[:, :, None] & mask).to(pred.dtype)[..., None, None]  # (G, S, H, 1, 1)
+
+        def about_mean(v):
+            return (v - (v * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp(min=1)) * w
+
+        dev = (about_mean(pred) - about_mean(others)) / self.hparams.rollout_scale_m
+        return dev.pow(2).sum() / (w.sum() * dev.shape[-2] * dev.shape[-1]).clamp(min=1)
 
 
 class StudentTask(_Task):

@@ -1,10 +1,11 @@
-"""The teacher's multi-step data and loss: recorded futures per window, the masked rollout term."""
+"""The teacher's multi-step data and loss: recorded futures per window, the masked rollout term, branch groups and
+their contrast term against a direct computation."""
 import numpy as np
 import pytest
 import torch
 
 from data import dataset
-from distill.datamodule import futures
+from distill.datamodule import futures, groups
 from distill.metrics import rollout_cases
 from distill.tasks import TeacherTask
 
@@ -38,7 +39,7 @@ def batch(tiny_dataset, n=16):
 
 def test_rollout_term_sees_only_the_steps_the_run_reached(tiny_dataset):
     torch.manual_seed(0)
-    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=10.0, rollout_scale_m=1.0)
+    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=10.0, rollout_scale_m=1.0, contrast_weight=0.0)
     task.log = lambda *args, **kwargs: None
     X, ego, others, mask = batch(tiny_dataset)
     mask[:, 5:] = False
@@ -52,9 +53,46 @@ def test_rollout_term_sees_only_the_steps_the_run_reached(tiny_dataset):
 
 def test_without_the_rollout_term_the_loss_is_the_one_step_huber(tiny_dataset):
     torch.manual_seed(0)
-    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=1.0)
+    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=1.0, contrast_weight=0.0)
     task.log = lambda *args, **kwargs: None
     X, ego, others, mask = batch(tiny_dataset)
     err = (task.net(X) - torch.cat([ego[:, :1], others[:, 0]], 1))[:, 1:] / 0.01
     want = torch.nn.functional.huber_loss(err, torch.zeros_like(err))
     assert task._step((X, ego, others, mask), "val").item() == pytest.approx(want.item(), rel=1e-5)
+
+
+def test_branch_groups_share_their_past_and_differ_in_the_ego_future(tiny_dataset):
+    a = dataset.load(tiny_dataset, "train")
+    g = groups(a)
+    assert g.shape[0] > 0 and g.shape[1] == 4  # the episode's own window and its push-on, back-off and speed egos
+    for row in g:
+        m = row[row >= 0]
+        assert a["branch"][m[0]] == 0 and (a["branch"][m[1:]] > 0).all()
+        assert len(set(a["episode"][m])) == 1 and len(set(a["step"][m])) == 1
+        assert all(np.array_equal(a["X"][i], a["X"][m[0]]) for i in m)
+    _, ego, _, _ = futures(a, 8)
+    assert np.abs(ego[g[:, 1]] - ego[g[:, 2]]).max() > 0.1  # different egos from one past
+
+
+def test_contrast_term_scores_the_predicted_difference_between_branches(tiny_dataset):
+    torch.manual_seed(0)
+    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=0.5, contrast_weight=1.0)
+    a = dataset.load(tiny_dataset, "train")
+    g = groups(a)[:6]
+    X, ego, others, mask = (torch.from_numpy(np.asarray(t[np.maximum(g, 0)], dtype=np.float32 if t.dtype != bool else bool))
+                            for t in futures(a, 8))
+    member = torch.from_numpy(g >= 0)
+    got = task.contrast(X, ego, others, mask, member).item()
+    shifted = task.contrast(X, ego, others + torch.randn(6, 1, 8, 1, 2), mask, member).item()
+    assert shifted == pytest.approx(got, rel=1e-4)  # a shift common to a group's futures is no response to the ego
+    with torch.no_grad():  # direct: per group, step and car, both deviations from the mean of the valid members
+        from core.rollout import rollout
+        total, count = 0.0, 0
+        for k in range(6):
+            pred = rollout(task.net, X[k], ego[k])[:, :, 1:].numpy()
+            for t in range(8):
+                ok = (member[k] & mask[k, :, t]).numpy()
+                p, o = pred[ok, t], others[k, ok, t].numpy()
+                total += (((p - p.mean(0)) - (o - o.mean(0))) ** 2).sum() / 0.5**2
+                count += ok.sum() * p.shape[1] * 2
+    assert got == pytest.approx(total / count, rel=1e-4) and got > 0

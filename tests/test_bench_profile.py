@@ -1,0 +1,28 @@
+"""The step-time bench's profile: its OSQP solve count equals a count taken by wrapping the QP wrapper, its network call
+count is zero for a source without a network, and its parts add up to the profiled step's time."""
+import time
+
+import numpy as np
+
+from bench import step_time
+from bench.states import PlanningState, settings
+from planner import mpc, qp
+from planner.closed_loop import backfill
+from planner.setup import make
+
+
+def test_profile_counts_osqp_solves_and_splits_the_step(monkeypatch):
+    scenario, source = make("two_lane", ["gradients=analytic"])[:2]
+    z = scenario.make_world(0).z
+    z[0, 1], z[0, 2] = 1.6, 0.15  # nudged towards the platoon, so the safety constraints are active
+    states = [PlanningState("two_lane", mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), None)]
+    counted = []
+    solve = qp.QP.solve
+    monkeypatch.setattr(qp.QP, "solve", lambda self, *a, **k: counted.append(1) or solve(self, *a, **k))
+    t0 = time.perf_counter()
+    ms, calls = step_time.profile(mpc.mpc_step, source, settings, states)
+    wall_ms = 1e3 * (time.perf_counter() - t0)
+    assert len(counted) > 0 and calls["OSQP solves"] == len(counted)
+    assert "onnxruntime calls" not in calls
+    assert 0.3 * wall_ms < sum(ms.values()) <= wall_ms
+    assert any(k.startswith("planner/") for k in ms) and all(v >= 0 for v in ms.values())
