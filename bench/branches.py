@@ -112,13 +112,14 @@ def branch_state(scenario, policy_ranges, seed: int, branch, rng: np.random.Gene
     return k, copies[k], past[-T_OBS:]
 
 
-def heldout_seeds(seed_offset: int, count: int, dataset_seed: int, dataset_episodes: int):
-    """World seeds seed_offset, seed_offset + 1, ...; a UserError if any was a dataset episode's."""
-    seeds = range(seed_offset, seed_offset + count)
-    used = set(episode_seeds(dataset_seed, dataset_episodes)) & set(seeds)
+def heldout_seeds(key: str, start: int, count: int, dataset) -> range:
+    """World seeds start .. start + count - 1 (`key`: the setting that chose start); a UserError if any was an episode of
+    the dataset (its config: name, seed, episodes)."""
+    seeds = range(start, start + count)
+    used = sorted(set(episode_seeds(dataset.seed, dataset.episodes)) & set(seeds))
     if used:
-        raise UserError(f"seed_offset={seed_offset}: world seeds {sorted(used)[:5]} were used by the dataset "
-                        f"(seed {dataset_seed}, {dataset_episodes} episodes); choose another seed_offset")
+        raise UserError(f"{key}={start}: world seeds {used[:5]} are episodes of the dataset {dataset.name} (seed "
+                        f"{dataset.seed}, {dataset.episodes} episodes); choose another {key}")
     return seeds
 
 
@@ -127,7 +128,7 @@ def make_pairs(scenario, policy_ranges, cfg) -> list[Pair]:
 
     cfg: seed_offset, states, T_p, branch (min_steps, max_steps, reach, tries per state), plans, dataset (seed, episodes).
     """
-    seeds = heldout_seeds(cfg.seed_offset, cfg.states * cfg.branch.tries, cfg.dataset.seed, cfg.dataset.episodes)
+    seeds = heldout_seeds("seed_offset", cfg.seed_offset, cfg.states * cfg.branch.tries, cfg.dataset)
     pairs, found = [], 0
     for seed in seeds:
         rng = np.random.default_rng([seed, 3])  # the dataset draws from [seed, 1] and [seed, 2]

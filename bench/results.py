@@ -28,8 +28,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
+from bench.branches import heldout_seeds
 from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
-from data.dataset import episode_seeds
 from planner.batch import progress
 from planner.report import mean_ci, wilson
 
@@ -71,14 +71,9 @@ class Plan:
 def check_seeds(cfg, interaction_cfg) -> range:
     """The planner's held-out world seeds; a UserError if one was a dataset episode's or an interaction benchmark world's."""
     n = max(cfg.results_preset.episodes, cfg.results_preset.table2_episodes)
-    seeds = range(cfg.planner_seed, cfg.planner_seed + n)
-    ds = interaction_cfg.dataset
-    used = sorted(set(episode_seeds(ds.seed, ds.episodes)) & set(seeds))
+    seeds = heldout_seeds("planner_seed", cfg.planner_seed, n, interaction_cfg.dataset)
     lo = interaction_cfg.seed_offset
     hi = lo + interaction_cfg.states * interaction_cfg.branch.tries
-    if used:
-        raise UserError(f"planner_seed={cfg.planner_seed}: world seeds {used[:5]} are episodes of the dataset "
-                        f"{ds.name} (seed {ds.seed}); choose another planner_seed")
     if seeds.start < hi and lo < seeds.stop:
         raise UserError(f"planner_seed={cfg.planner_seed}: planner seeds {seeds.start}..{seeds.stop - 1} overlap the "
                         f"interaction benchmark's {lo}..{hi - 1}; choose another planner_seed")

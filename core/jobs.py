@@ -22,7 +22,7 @@ def job_groups(choices) -> str:
         if not group.startswith("hydra/") and chosen is not None:
             options = sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
             lines.append(f"{group}: {' | '.join(options)}  (now {chosen})")
-    return "\n".join(lines)
+    return "\n".join(lines) or "none: every setting is a key below"
 
 
 OmegaConf.register_new_resolver("job_groups", job_groups, replace=True)  # used by conf/hydra/help/job.yaml

@@ -6,6 +6,7 @@ import mlflow
 import numpy as np
 import pytest
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from bench.branches import Pair, execute, heldout_seeds, make_pairs, redraw
 from bench.interaction import first_order_response, load_source, rollout_response, run, scores
@@ -162,11 +163,12 @@ def test_branch_pairs_share_the_hidden_decisions(pairs):
 def test_heldout_seeds_are_disjoint_from_the_datasets(tmp_path):
     for dataset in ("small", "large"):
         cfg = small_cfg(tmp_path, f"dataset={dataset}")
-        seeds = heldout_seeds(cfg.seed_offset, 10**4, cfg.dataset.seed, cfg.dataset.episodes)
+        seeds = heldout_seeds("seed_offset", cfg.seed_offset, 10**4, cfg.dataset)
         assert not set(seeds) & set(episode_seeds(cfg.dataset.seed, cfg.dataset.episodes))
     used = episode_seeds(0, 160)[5]
-    with pytest.raises(UserError, match=f"seed_offset={used}"):
-        heldout_seeds(used, 3, 0, 160)
+    message = rf"seed_offset={used}: world seeds \[{used}\] are episodes of the dataset small \(seed 0, 160 episodes\)"
+    with pytest.raises(UserError, match=message):
+        heldout_seeds("seed_offset", used, 1, OmegaConf.create({"name": "small", "seed": 0, "episodes": 160}))
 
 
 def test_job_logs_one_run_per_source_and_skips_missing_models(tmp_path, caplog):

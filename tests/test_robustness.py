@@ -266,14 +266,20 @@ def test_sigterm_stops_a_job_non_zero_and_marks_its_run_killed(kind, tmp_path, m
     assert mlflow.get_run(out.split()[0]).info.status == "KILLED"
 
 
+NO_GROUPS = ["none: every setting is a key below"]
+
+
 @pytest.mark.parametrize("command,groups,foreign", [
     ("make-dataset", ["dataset: large | small | tiny  (now small)", "scenario: random | three_lane | two_lane  (now random)"],
      ["model:", "trainer:"]),
     ("distill", ["model: student | teacher  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
     ("surrogate", ["paper: table1  (now table1)"], ["dataset:", "model:", "scenario:", "trainer:"]),
+    ("compare", NO_GROUPS, ["dataset:", "gradients:", "model:", "paper:", "scenario:", "trainer:"]),
+    ("python -m bench.step_time", NO_GROUPS, ["dataset:", "gradients:", "model:", "paper:", "scenario:", "trainer:"]),
 ])
 def test_help_names_the_command_and_only_its_groups(command, groups, foreign):
-    out = subprocess.run([VENV_BIN / command, "--help"], capture_output=True, text=True, timeout=120, cwd=REPO).stdout
+    argv = [sys.executable, *command.split()[1:]] if command.startswith("python ") else [VENV_BIN / command]
+    out = subprocess.run([*argv, "--help"], capture_output=True, text=True, timeout=120, cwd=REPO).stdout
     assert out.startswith(f"{command}: ") and "Hydra" not in out.splitlines()[0] and "powered by Hydra" not in out
     section = out.split("== Config groups (group=option) ==\n")[1].split("\n\n")[0].splitlines()
     assert all(g in section for g in groups)
