@@ -65,6 +65,21 @@ class OneOf:
 
 
 @dataclass(frozen=True)
+class Either:
+    """A value one of `rules` accepts."""
+
+    rules: tuple
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return any(r.ok(v) for r in self.rules)
+
+    def allowed(self):
+        return " or ".join(r.allowed() for r in self.rules)
+
+
+@dataclass(frozen=True)
 class Bool:
     """true or false."""
 
@@ -231,10 +246,12 @@ DISTILL = {
     "ckpt_path": Text(nullable=True), "dataset.name": Text(),
     "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,
     "model.teacher": OneOf(("teacher",), optional=True),
-    **{f"model.task.{k}": Real(0, optional=True) for k in ("jac_weight", "ego_jac_weight", "spectral_weight")},
-    "model.data.perturbed_copies": Int(0, optional=True), "model.data.projections": Int(1, optional=True),
+    **{f"model.task.{k}": Real(0, optional=True) for k in ("jac_weight", "ego_jac_weight", "spectral_weight", "contrast_weight", "cert_weight")},
+    "model.data.perturbed_copies": Int(0, optional=True), "model.data.contrast_groups": Int(0, optional=True), "model.data.projections": Int(1, optional=True),
     "model.certificate.samples": Int(1, optional=True), "model.certificate.fd_step_m": Real(0, lo_open=True, optional=True),
     "model.certificate.rho_used": Real(0, lo_open=True, optional=True), "model.certificate.T_p": Int(1, optional=True),
+    "model.certificate.planner.v_max": Real(0, lo_open=True, optional=True),
+    "model.certificate.planner.y_margin": Real(0, optional=True),
 }
 
 SURROGATE = {
@@ -256,7 +273,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
     "T_obs": Int(2), "merge_tol": POS, "plots": Bool(),
-    "mpc.T_p": Int(1), "mpc.rho": POS, **{f"mpc.weights.{k}": NONNEG for k in COST},
+    "mpc.T_p": Int(1), "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
     "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
     "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
     "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),

@@ -14,6 +14,10 @@ H_l = g1 ||W_l|| H_{l-1} + g2 r_l ||W_l|| L_{l-1}^2 (r_l largest row norm); per 
 |d a_k / d x_j| <= ||W_L[k]|| L_{L-1} ||W_1 e_j|| / ||W_1||, ||Hess a_k|| <= ||W_L[k]|| H_{L-1}, and the tanh head
 gives ||Hess phi_k|| <= s_k (||Hess a_k|| + sup|tanh''| ||grad a_k||^2). cv does not depend on the ego's inputs.
 """
+import json
+import math
+from pathlib import Path
+
 import numpy as np
 
 from core.jobs import UserError
@@ -104,7 +108,8 @@ def smallest_positive_sv(X, tol=1e-12):
     return float(sv[sv > tol * sv[0]].min())
 
 
-def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, dt=0.2):
+def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0,
+              params=bicycle.BicycleParams()):
     """Theorem 1: rho > max{1, (1 + 2 sigma_min(C)) L_J M}, with Lemma 3's L_1, L_2, L_3, L_g; returns every term.
 
     Assumptions: the ego's own |x| <= box.x and |y| <= box.y over the horizon (x_max, y_max); one multiplier
@@ -121,7 +126,7 @@ def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delt
     L_phi2 = 2 * np.linalg.eigvalsh(cost["lambda_a"] * np.eye(t_p) + cost["lambda_da"] * D.T @ D).max()
     L_phi3 = 2 * max(cost["lambda_div"], cost["lambda_v"])
     L_J = max(L_phi1, L_phi2, L_phi3 + n_others * t_p * lambda_s * L_g)
-    A_t, B_t, C_t, _ = bicycle.linearize([0.0, 0.0, 0.0, v], delta, a, bicycle.BicycleParams(dt=dt))
+    A_t, B_t, C_t, _ = bicycle.linearize([0.0, 0.0, 0.0, v], delta, a, params)
     A, B, C = admm_matrices(A_t, B_t, C_t, t_p)
     sigma_C = smallest_positive_sv(C)
     M_sub = max(1 / smallest_positive_sv(A), 1 / smallest_positive_sv(B), 1 / sigma_C)
@@ -302,3 +307,67 @@ def region_samples(lo, hi, n, rng):
 def tightest(global_c, region_c):
     """Both bounds hold on the region, so the certificate there is the smaller of each: theta_x, theta_y, L."""
     return {**global_c, **{k: min(global_c[k], region_c[k]) for k in ("theta_x", "theta_y", "L")}}
+
+
+# Per scenario. The planner's frame is the ego's position at planning time (b_i is translation-invariant), so Lemma 3's
+# x_max, y_max are how far the ego can get within the horizon, and A1's s_x, s_y follow from the region: the others'
+# next positions are the ego's last one plus rel + vel + the head's s.
+def scenario_setting(sc):
+    """(lanes, lane width m, ego start speeds m/s, BicycleParams) of a scenario config: its widest road; for random
+    merges the slowest and the fastest ego start (data.scenarios.RandomScenario: platoon speed + offset, >= 0.5 m/s)."""
+    lanes = max(sc.get("lanes_choices", [sc["road"]["lanes"]]))
+    if "speed_range" in sc:
+        speeds = tuple(max(0.5, sc["speed_range"][k] + sc["ego_dv_range"][k]) for k in (0, 1))
+    else:
+        speeds = (sc["ego"]["v"],)
+    params = bicycle.BicycleParams(**{k: sc["params"][k] for k in ("l_f", "l_r", "dt")})
+    return lanes, float(sc["road"]["lane_width"]), tuple(map(float, speeds)), params
+
+
+def scenario_region(region, lanes, lane_width, y_margin):
+    """The region with the rel_y its road allows: others' centres on its lanes, the ego's within y_margin of them (m)."""
+    reach = (lanes - 1) * lane_width + y_margin
+    return {**region, "rel_y": [-reach, reach]}
+
+
+def lemma3_extent(region, s, lanes, lane_width, y_margin, v_max, t_p, dt):
+    """x_max, y_max (the ego's reach over the horizon) and A1's s_x, s_y (the others' next positions), metres."""
+    x_max = v_max * t_p * dt
+    y_max = (lanes - 1) * lane_width + 2 * y_margin
+    reach = {k: max(abs(b) for b in region[k]) for k in ("rel_x", "rel_y", "vel_x", "vel_y")}
+    return {"x_max": x_max, "y_max": y_max, "s_x": x_max + reach["rel_x"] + reach["vel_x"] + s[0],
+            "s_y": y_max + reach["rel_y"] + reach["vel_y"] + s[1]}
+
+
+def per_scenario(weights, s, glob, region, scenarios, planner, cost, t_p, lambda_s):
+    """Certificate and Theorem 1 terms on each scenario's region and speed: {name: {theta_x, ..., rho_bound, region}}.
+
+    sigma_min(C) and M depend on the linearisation speed v; over a range of starts the largest bound is kept.
+    """
+    out = {}
+    for name, sc in scenarios.items():
+        lanes, width, speeds, params = scenario_setting(sc)
+        reg = scenario_region(region, lanes, width, planner["y_margin"])
+        c = tightest(glob, region_constants(weights, s, *feature_box(reg)))
+        ext = lemma3_extent(reg, s, lanes, width, planner["y_margin"], planner["v_max"], t_p, params.dt)
+        c.update(s_x=ext["s_x"], s_y=ext["s_y"])
+        terms = [{**rho_bound(c, {"x": ext["x_max"], "y": ext["y_max"]}, cost, t_p, lambda_s=lambda_s, v=v, params=params),
+                  "v": v} for v in speeds]
+        c.update(max(terms, key=lambda t: t["rho_bound"]))
+        out[name] = {**c, "x_max": ext["x_max"], "y_max": ext["y_max"], "region": reg}
+    return out
+
+
+def certified_rho(path, scenario):
+    """Theorem 1's rho bound for `scenario` from the student's certificate.json; a one-line UserError when unusable."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"mpc.rho=certified: no certificate at {path}; run `distill model=student` first")
+    scenarios = json.loads(path.read_text()).get("scenarios", {})
+    if scenario not in scenarios:
+        raise UserError(f"mpc.rho=certified: {path} has no bound for scenario {scenario} "
+                        f"(it certifies {', '.join(scenarios) or 'none'}); rerun `distill model=student`")
+    rho = float(scenarios[scenario]["rho_bound"])
+    if not math.isfinite(rho):
+        raise UserError(f"mpc.rho=certified: the certified rho for {scenario} in {path} is {rho}, not a usable penalty")
+    return rho

@@ -8,6 +8,7 @@ import torch
 from hydra.utils import instantiate
 
 from core.rollout import SLOTS, T_OBS, rollout
+from distill.certificate import G1, G2, G2_TANH, ego_columns
 
 
 class _Task(L.LightningModule):
@@ -94,8 +95,9 @@ class StudentTask(_Task):
     v^T J (an unbiased estimate of the Jacobian error's Frobenius norm) + the spectral penalty."""
 
     def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, jac_weight: float,
-                 ego_jac_weight: float, spectral_weight: float):
-        """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty."""
+                 ego_jac_weight: float, spectral_weight: float, cert_weight: float):
+        """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty and
+        of the log of the certified A3 constant L (Theorem 1's rho grows with it)."""
         super().__init__(net, lr, weight_decay)
         # d others / d ego is small beside the others' own dynamics, yet it is the interaction the planner uses
         columns = torch.ones(T_OBS, SLOTS, 2)
@@ -107,6 +109,17 @@ class StudentTask(_Task):
         norms = [torch.linalg.matrix_norm(layer.weight @ self.net.P if k == 0 else layer.weight, ord=2)
                  for k, layer in enumerate(self.net.layers)]
         return torch.stack(norms).log().sum()
+
+    def certified_L(self):
+        """distill.certificate.constants' L (m^-1), differentiable: the layer recursion on the ego's input columns."""
+        lip, hess = 1.0, 0.0
+        for k, layer in enumerate(self.net.layers[:-1]):
+            W = (layer.weight @ self.net.P)[:, ego_columns()] if k == 0 else layer.weight
+            n, r = torch.linalg.matrix_norm(W, ord=2), W.norm(dim=1).max()
+            hess = G1 * n * hess + G2 * r * n * lip**2
+            lip = G1 * n * lip
+        row = self.net.layers[-1].weight.norm(dim=1)
+        return (self.net.s * (row * hess + G2_TANH * (row * lip) ** 2)).max()
 
     def _step(self, batch, stage):
         """Loss on (window, teacher next, cotangents v, teacher v^T J) and its logged parts."""
@@ -121,6 +134,8 @@ class StudentTask(_Task):
         loss = out_loss + self.hparams.jac_weight * jac_loss
         if self.hparams.spectral_weight:
             loss = loss + self.hparams.spectral_weight * self.spectral_penalty()
+        if self.hparams.cert_weight:
+            loss = loss + self.hparams.cert_weight * self.certified_L().log()
         self._log(stage, loss=loss, out_loss=out_loss, jac_loss=jac_loss, ade_m=err.norm(dim=-1).mean())
         return loss
 

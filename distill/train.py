@@ -11,12 +11,14 @@ import lightning as L
 import mlflow
 import numpy as np
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import UserError, mlflow_run, staged, tracking_uri, writable
+from core.jobs import CONF_DIR, UserError, mlflow_run, staged, tracking_uri, writable
 from data import dataset
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
@@ -60,6 +62,16 @@ def fit(cfg: DictConfig, run_id, teacher):
     return fitter
 
 
+def scenario_configs(names):
+    """{name: conf/scenario/<name>.yaml composed, as plain containers} (inside a running Hydra job, by its search path)."""
+    options = sorted(p.stem for p in (Path(CONF_DIR) / "scenario").glob("*.yaml"))
+    unknown = [n for n in names if n not in options]
+    if unknown:
+        raise UserError(f"model.certificate.scenarios: unknown scenario {unknown[0]}; choose from {', '.join(options)}")
+    with nullcontext() if GlobalHydra.instance().is_initialized() else initialize_config_dir(CONF_DIR, version_base="1.3"):
+        return {n: OmegaConf.to_container(compose(f"scenario/{n}").scenario, resolve=True) for n in names}
+
+
 def certify(cfg_cert, predictor, windows, rng):
     """Certificate (global and on the planner's region, the smaller kept) + rho bound, and the sampled check (metres).
 
@@ -95,7 +107,20 @@ def certify(cfg_cert, predictor, windows, rng):
     emp["emp_samples_region"] = len(inside)
     emp["region_fraction_data"] = float(certificate.in_region(data, lo, hi).mean())
     emp["region_fraction_planner_like"] = float(certificate.in_region(pert, lo, hi).mean())
+    plain = OmegaConf.to_container(cfg_cert, resolve=True)
+    c["scenarios"] = certificate.per_scenario(predictor.weights, predictor.s, glob, plain["region"],
+                                              scenario_configs(plain["scenarios"]), plain["planner"], plain["cost"],
+                                              cfg_cert.T_p, cfg_cert.lambda_s)
+    for name, sc in c["scenarios"].items():  # each scenario's bound checked at its own region's corners and inside
+        sc_emp = certificate.sampled(autodiff, jac64, certificate.region_samples(
+            *certificate.feature_box(sc["region"]), cfg_cert.samples // 6, rng), cfg_cert.fd_step_m)
+        certificate.verify(sc, sc_emp)
+        sc.update({k: v for k, v in sc_emp.items() if k != "emp_theta_max"}, **certificate.ratios(sc, sc_emp))
     return c, emp
+
+
+SCENARIO_METRICS = ("theta_x", "theta_y", "L", "L_1", "L_g", "L_J", "M", "sigma_min_C", "rho_bound", "ratio_theta_x",
+                    "ratio_theta_y", "ratio_L")
 
 
 def check_inputs(cfg: DictConfig):
@@ -109,7 +134,10 @@ def check_inputs(cfg: DictConfig):
         if not Path(cfg.ckpt_path).is_file():
             raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
         models.read_checkpoint(Path(cfg.ckpt_path), cfg.model.name)
-    return models.load(cfg.model.teacher, cfg.models_dir) if cfg.model.name == "student" else None
+    if cfg.model.name != "student":
+        return None
+    scenario_configs(cfg.model.certificate.scenarios)  # an unknown name fails here, not after training
+    return models.load(cfg.model.teacher, cfg.models_dir)
 
 
 def run(cfg: DictConfig):
@@ -143,7 +171,8 @@ def run(cfg: DictConfig):
             results.update(metrics.jac_rel_err(predictor, teacher, test["X"][:512].astype(float)))
             t1 = time.perf_counter()
             cert, emp = certify(cfg.model.certificate, predictor, test["X"].astype(float), np.random.default_rng(cfg.seed))
-            results.update({f"cert_{k}": v for k, v in cert.items() if k != "rho_used"})
+            results.update({f"cert_{k}": v for k, v in cert.items() if k not in ("rho_used", "scenarios")})
+            results.update({f"cert_{name}_{k}": sc[k] for name, sc in cert["scenarios"].items() for k in SCENARIO_METRICS})
             results.update(emp)
             results.update(certificate.ratios(cert, emp))
             results["cert_check_s"] = time.perf_counter() - t1
@@ -159,8 +188,10 @@ def run(cfg: DictConfig):
                 raise UserError(f"{models_dir / name}.onnx disagrees with torch by {results['onnx_max_err_m']:.2e} m")
             shutil.copyfile(best, stage / f"{name}.ckpt")
             if cert is not None:
-                doc = {"constants_m": cert, "sampled": emp, "ratios": certificate.ratios(cert, emp),
-                       "box": OmegaConf.to_container(cfg.model.certificate, resolve=True),
+                doc = {"constants_m": {k: v for k, v in cert.items() if k != "scenarios"}, "scenarios": cert["scenarios"],
+                       "sampled": emp, "ratios": certificate.ratios(cert, emp),
+                       "box": {k: v for k, v in OmegaConf.to_container(cfg.model.certificate, resolve=True).items()
+                               if k != "scenarios"},
                        "checkpoint": str(models_dir / f"{name}.ckpt"), "conventions": certificate.__doc__}
                 (stage / "certificate.json").write_text(json.dumps(doc, indent=1))
                 mlflow.log_artifact(str(stage / "certificate.json"))
@@ -190,4 +221,10 @@ def summary(name, table, r, cert):
         lines.append(f"Theorem 1: rho > {cert['rho_bound']:.4g} = (1 + 2 sigma_min(C)) L_J M with L_J {cert['L_J']:.4g} "
                      f"(L_1 {cert['L_1']:.4g}, L_2 {cert['L_2']:.3g}, L_3 {cert['L_3']:.3g}, L_g {cert['L_g']:.4g}), "
                      f"M {cert['M']:.3g}, sigma_min(C) {cert['sigma_min_C']:.3g}; the planner uses rho = {cert['rho_used']:g}")
+        for name, sc in cert["scenarios"].items():
+            lines.append(f"  {name} (rel_y {sc['region']['rel_y'][1]:g} m, x_max {sc['x_max']:g}, y_max {sc['y_max']:g}, "
+                         f"v {sc['v']:g} m/s): theta_x {sc['theta_x']:.4g} ({sc['ratio_theta_x']:.3f})  theta_y "
+                         f"{sc['theta_y']:.4g} ({sc['ratio_theta_y']:.3f})  L {sc['L']:.4g} ({sc['ratio_L']:.3f}); rho > "
+                         f"{sc['rho_bound']:.4g} (L_1 {sc['L_1']:.4g}, L_g {sc['L_g']:.4g}, L_J {sc['L_J']:.4g}, "
+                         f"M {sc['M']:.3g}, sigma_min(C) {sc['sigma_min_C']:.3g})")
     return "\n".join(lines)

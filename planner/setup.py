@@ -1,5 +1,7 @@
 """The one place a `planner` config becomes objects: the scenario, the gradient source and the MPC settings, and one
 closed-loop episode of a method; used by the `planner` command, its batch workers, the benchmarks and the tests."""
+from pathlib import Path
+
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import InstantiationException
@@ -7,6 +9,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from core.jobs import CONF_DIR, UserError
+from distill import certificate
 from planner import closed_loop, mpc
 
 
@@ -34,11 +37,19 @@ def build(node, **kwargs):
         raise cause from None
 
 
+def rho(cfg: DictConfig, scenario) -> float:
+    """ADMM's rho: cfg.mpc.rho, or for mpc.rho=certified Theorem 1's bound that models/certificate.json gives the
+    scenario (the student's certificate, whatever the gradient source)."""
+    if cfg.mpc.rho != "certified":
+        return cfg.mpc.rho
+    return certificate.certified_rho(Path(cfg.models_dir) / "certificate.json", scenario.name)
+
+
 def settings(cfg: DictConfig, scenario) -> mpc.Settings:
     """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters."""
     # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
     return build(cfg.mpc, _partial_=True)(y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road,
-                                          params=scenario.params)
+                                          params=scenario.params, rho=rho(cfg, scenario))
 
 
 def setup(cfg: DictConfig):

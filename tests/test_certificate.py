@@ -3,11 +3,15 @@ theta and L bound autodiff gradients and finite-difference Hessians at corners a
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
+from conftest import compose_cfg
 from core.jobs import UserError
+from data.bicycle import BicycleParams, linearize
 from distill import certificate
 from distill.models import StudentPredictor, TorchPredictor
 from distill.student import GeluStudent
+from distill.train import scenario_configs
 
 REGION = {"rel_x": [-8.0, 12.0], "rel_y": [-1.0, 5.0], "vel_x": [0.8, 1.2], "vel_y": [-0.05, 0.1],
           "acc_x": [-0.004, 0.004], "acc_y": [-0.002, 0.003]}
@@ -94,3 +98,57 @@ def test_bad_region_names_the_key():
         certificate.feature_box({k: v for k, v in REGION.items() if k != "acc_y"})
     with pytest.raises(UserError, match="low <= high"):
         certificate.feature_box({**REGION, "vel_x": [2.0, 0.0]})
+
+
+def test_per_scenario_rho_bound_matches_lemma3_and_theorem1_computed_here(student):
+    """Each scenario's rho bound from its own road and speed, against Lemma 3 / Theorem 1 written out by hand, A, B, C
+    assembled row by row from the linearised bicycle; the two-lane region is narrower, so its bound is no larger."""
+    cfg = compose_cfg("distill", ["model=student"])
+    cert = OmegaConf.to_container(cfg.model.certificate, resolve=True)
+    planner = compose_cfg("planner").mpc
+    assert cert["planner"] == {"v_max": planner.v_box[1], "y_margin": planner.y_margin}  # the planner's own limits
+    glob = certificate.constants(student.weights, student.s, cert["box"])
+    out = certificate.per_scenario(student.weights, student.s, glob, cert["region"], scenario_configs(cert["scenarios"]),
+                                   cert["planner"], cert["cost"], cert["T_p"], cert["lambda_s"])
+    assert set(out) == {"two_lane", "three_lane", "random"}
+    two, three = out["two_lane"], out["three_lane"]
+    assert two["region"]["rel_y"] == [-5.0, 5.0] and three["region"]["rel_y"] == [-9.0, 9.0]  # 4 m lanes, 1 m margin
+    assert two["L"] <= three["L"] and two["rho_bound"] <= three["rho_bound"]
+    assert out["random"]["v"] == 6.5  # the fastest ego start (platoon 5.5 m/s, ego 1 m/s above): the smallest sigma_min(C)
+    assert out["random"]["rho_bound"] > three["rho_bound"]  # same region and road as three_lane, faster
+    t_p, dt, v, cost = cert["T_p"], 0.2, 5.0, cert["cost"]
+    x_max, y_max = 10.0 * t_p * dt, 4.0 + 2 * 1.0
+    s_x, s_y = x_max + 40.0 + 2.0 + 0.5, y_max + 5.0 + 1.53 + 0.25
+    tx, ty, L = two["theta_x"], two["theta_y"], two["L"]
+    L1 = 2 * (tx * (1 + tx) + ty * (1 + ty) + (x_max + y_max + s_x + s_y) * L)
+    L_g = t_p * (max(L1, 2 * (1 + tx)) + max(L1, 2 * (1 + ty)))
+    L_J = 2 * max(cost["lambda_div"], cost["lambda_v"]) + 4 * t_p * cert["lambda_s"] * L_g  # Z's block: 4 others
+    assert L_J > 2 * (cost["lambda_delta"] + 4 * cost["lambda_ddelta"] + cost["lambda_a"] + 4 * cost["lambda_da"])
+    A_t, B_t, C_t, _ = linearize(np.array([0.0, 0.0, 0.0, v]), 0.0, 0.0, BicycleParams())
+    A, B, C = np.zeros((4 * t_p, t_p)), np.zeros((4 * t_p, t_p)), -np.eye(4 * t_p)
+    for k in range(t_p):
+        A[4 * k:4 * k + 4, k], B[4 * k:4 * k + 4, k] = A_t, B_t
+        if k:
+            C[4 * k:4 * k + 4, 4 * k - 4:4 * k] = C_t
+    sv = lambda X: np.linalg.svd(X, compute_uv=False).min()  # noqa: E731 (all three have full column rank)
+    M = max(1 / sv(A), 1 / sv(B), 1 / sv(C))
+    assert two["L_J"] == pytest.approx(L_J, rel=1e-9)  # above the Delta and alpha blocks' (||D'D|| < 4), so the max
+    assert two["M"] == pytest.approx(M, rel=1e-9) and two["sigma_min_C"] == pytest.approx(sv(C), rel=1e-9)
+    assert two["rho_bound"] == pytest.approx((1 + 2 * sv(C)) * two["L_J"] * M, rel=1e-9)
+
+
+def test_training_penalty_is_the_global_certificates_L(student):
+    """StudentTask.certified_L (torch, differentiable) is distill.certificate.constants' L of the same weights."""
+    from distill.tasks import StudentTask
+
+    task = StudentTask({"_target_": "torch.nn.Identity"}, 1e-3, 0.0, 0.01, 1.0, 1.0, 0.0, cert_weight=1.0)
+    task.net = student.module
+    L = task.certified_L()
+    assert float(L.detach()) == pytest.approx(certificate.constants(student.weights, student.s, BOX)["L"], rel=1e-5)
+    L.log().backward()
+    assert student.module.layers[0].weight.grad.abs().max() > 0  # it trains the first layer's ego columns
+
+
+def test_unknown_scenario_names_the_key():
+    with pytest.raises(UserError, match="^model.certificate.scenarios: unknown scenario four_lane; choose from random"):
+        scenario_configs(["two_lane", "four_lane"])
