@@ -12,6 +12,7 @@ own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out be
 import cProfile
 import logging
 import pstats
+import re
 import time
 from collections import defaultdict
 
@@ -163,6 +164,11 @@ def profile(step, src, s_of, states) -> tuple[dict, dict]:
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 
+def profile_key(source: str, part_name: str) -> str:
+    """The MLflow metric name of a profile entry: profile_<source>_<part>, characters MLflow refuses replaced by _."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"profile_{source}_{part_name}")
+
+
 def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
     """The printed profile: the `top` parts by own time per step, then the call counts."""
     total = sum(ms.values())
@@ -240,7 +246,7 @@ def run(cfg: DictConfig) -> dict:
     log.info("\n%s", table(timings, srcs, metrics, cfg.step_time.repeats, states))
     for name, (ms, calls) in profiles.items():
         log.info("\n%s", profile_table(name, ms, calls))
-        metrics.update({f"profile_{name}_{k.replace(' ', '_').replace('/', '_')}": v for k, v in {**ms, **calls}.items()})
+        metrics.update({profile_key(name, k): v for k, v in {**ms, **calls}.items()})
     log_bench("step_time", cfg, srcs, len(states), metrics)
     return metrics
 

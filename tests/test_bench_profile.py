@@ -1,5 +1,7 @@
 """The step-time bench's profile: its OSQP solve count equals a count taken by wrapping the QP wrapper, its network call
-count is zero for a source without a network, and its parts add up to the profiled step's time."""
+count is zero for a source without a network, its parts add up to the profiled step's time, and its
+MLflow metric names are ones MLflow accepts."""
+import re
 import time
 
 import numpy as np
@@ -26,3 +28,5 @@ def test_profile_counts_osqp_solves_and_splits_the_step(monkeypatch):
     assert "onnxruntime calls" not in calls
     assert 0.3 * wall_ms < sum(ms.values()) <= wall_ms
     assert any(k.startswith("planner/") for k in ms) and all(v >= 0 for v in ms.values())
+    keys = [step_time.profile_key("analytic", k) for k in [*ms, *calls, "<frozen importlib._bootstrap>"]]
+    assert all(re.fullmatch(r"profile_analytic_[A-Za-z0-9_.-]+", k) for k in keys)  # names MLflow accepts
