@@ -31,3 +31,20 @@ def test_profile_counts_osqp_solves_and_splits_the_step(monkeypatch):
     assert any(k.startswith("planner/") for k in ms) and all(v >= 0 for v in ms.values())
     keys = [step_time.profile_key("analytic", k) for k in [*ms, *calls, "<frozen importlib._bootstrap>"]]
     assert all(re.fullmatch(r"profile_analytic_[A-Za-z0-9_.-]+", k) for k in keys)  # names MLflow accepts
+
+
+def test_profile_counts_each_onnxruntime_call_once(tmp_path):
+    import onnxruntime
+    import torch
+
+    torch.onnx.export(torch.nn.Linear(3, 2), (torch.zeros(1, 3),), str(tmp_path / "lin.onnx"), input_names=["x"],
+                      dynamo=False)
+    session = onnxruntime.InferenceSession(str(tmp_path / "lin.onnx"), providers=["CPUExecutionProvider"])
+
+    def step(s, obs, src, warm):  # stands in for an MPC step that runs a network 7 times
+        for _ in range(7):
+            session.run(None, {"x": np.zeros((1, 3), np.float32)})
+
+    states = [PlanningState("two_lane", None, None)] * 2
+    _, calls = step_time.profile(step, None, lambda scenario: None, states)
+    assert calls["onnxruntime calls"] == 7
