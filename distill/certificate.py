@@ -33,21 +33,31 @@ def ego_columns(t_obs=T_OBS, m=SLOTS):
     return np.array([t * m * 2 + c for t in range(t_obs) for c in range(2)])
 
 
-def constants(weights, s, box):
-    """s_x, s_y (A1), theta_x, theta_y (A2), L (A3) in metres from the student's float64 weights [(W, b)] and head s."""
-    cols = ego_columns()
-    Ws = [W for W, _ in weights]
+def layer_recursion(Ws, spectral, row_norms):
+    """(L_{L-1}, H_{L-1}): the layer recursion's gradient and Hessian bounds over the hidden layers Ws (the first on the
+    ego's input columns), for numpy or torch weights through their `spectral` and `row_norms` functions."""
     lip, hess = 1.0, 0.0
-    for k, W in enumerate(Ws[:-1]):
-        W = W[:, cols] if k == 0 else W
-        n, r = np.linalg.norm(W, 2), np.linalg.norm(W, axis=1).max()
+    for W in Ws:
+        n, r = spectral(W), row_norms(W).max()
         hess = G1 * n * hess + G2 * r * n * lip**2
         lip = G1 * n * lip
-    W1 = Ws[0][:, cols]
+    return lip, hess
+
+
+def head_L(s, row, lip, hess):
+    """A3's L per output k (m^-1): s_k (||W_L[k]|| H_{L-1} + sup|tanh''| (||W_L[k]|| L_{L-1})^2), row = ||W_L[k]||."""
+    return s * (row * hess + G2_TANH * (row * lip) ** 2)
+
+
+def constants(weights, s, box):
+    """s_x, s_y (A1), theta_x, theta_y (A2), L (A3) in metres from the student's float64 weights [(W, b)] and head s."""
+    Ws = [W for W, _ in weights]
+    W1 = Ws[0][:, ego_columns()]
+    lip, hess = layer_recursion([W1, *Ws[1:-1]], lambda W: np.linalg.norm(W, 2), lambda W: np.linalg.norm(W, axis=1))
     row = np.linalg.norm(Ws[-1], axis=1)  # ||W_L[k]||, k = 2 (i - 1) + w
     entry = row * lip * np.linalg.norm(W1, axis=0).max() / np.linalg.norm(W1, 2)  # max |d a_k / d ego_j|
     theta = s * entry
-    L_k = s * (row * hess + G2_TANH * (row * lip) ** 2)
+    L_k = head_L(s, row, lip, hess)
     return {
         "s_x": box["x"] + box["dx"] + s[0], "s_y": box["y"] + box["dy"] + s[1],  # |last + velocity + s tanh|
         "theta_x": float(theta[0::2].max()), "theta_y": float(theta[1::2].max()), "L": float(L_k.max()),

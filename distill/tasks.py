@@ -8,7 +8,7 @@ import torch
 from hydra.utils import instantiate
 
 from core.rollout import SLOTS, T_OBS, rollout
-from distill.certificate import G1, G2, G2_TANH, ego_columns
+from distill.certificate import ego_columns, head_L, layer_recursion
 
 
 class _Task(L.LightningModule):
@@ -111,15 +111,11 @@ class StudentTask(_Task):
         return torch.stack(norms).log().sum()
 
     def certified_L(self):
-        """distill.certificate.constants' L (m^-1), differentiable: the layer recursion on the ego's input columns."""
-        lip, hess = 1.0, 0.0
-        for k, layer in enumerate(self.net.layers[:-1]):
-            W = (layer.weight @ self.net.P)[:, ego_columns()] if k == 0 else layer.weight
-            n, r = torch.linalg.matrix_norm(W, ord=2), W.norm(dim=1).max()
-            hess = G1 * n * hess + G2 * r * n * lip**2
-            lip = G1 * n * lip
-        row = self.net.layers[-1].weight.norm(dim=1)
-        return (self.net.s * (row * hess + G2_TANH * (row * lip) ** 2)).max()
+        """distill.certificate.constants' L (m^-1), differentiable: the same layer recursion on torch weights."""
+        layers = self.net.layers
+        hidden = [(layers[0].weight @ self.net.P)[:, ego_columns()], *(layer.weight for layer in layers[1:-1])]
+        lip, hess = layer_recursion(hidden, lambda W: torch.linalg.matrix_norm(W, ord=2), lambda W: W.norm(dim=1))
+        return head_L(self.net.s, layers[-1].weight.norm(dim=1), lip, hess).max()
 
     def _step(self, batch, stage):
         """Loss on (window, teacher next, cotangents v, teacher v^T J) and its logged parts."""
