@@ -166,7 +166,7 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
         lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
     for _ in range(s.T_p):
         Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
-        alpha.append(s.brake if z[3] > 0.0 else 0.0)
+        alpha.append(max(s.brake, -z[3] / s.params.dt))  # to a stop, never into reverse (the bicycle's v may go negative)
         z = bicycle.step(z, [Delta[-1], alpha[-1]], s.params)
     Delta, alpha = np.array(Delta), np.array(alpha)
     Z = simulate(obs.z0, Delta, alpha, s.params)

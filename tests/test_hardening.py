@@ -88,3 +88,15 @@ def test_every_job_refuses_an_unwritable_output_folder_in_one_line(job, override
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("error: cannot write to the output folder") and "a_file" in err[-1]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_braking_fallback_stops_the_ego_and_never_reverses(start):
+    s, source, obs, _, _ = start
+    slow = obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 0.3]))  # 0.3 m/s: one step of the full brake would reverse
+    result = mpc.fallback(s, slow, source, None, "test")
+    assert "braking in lane" in result.fallback
+    assert result.u[1] == pytest.approx(-0.3 / s.params.dt) and result.u[1] > s.brake
+    v = mpc.simulate(slow.z0, result.plan.Delta, result.plan.alpha, s.params)[3::4]
+    np.testing.assert_allclose(v, 0.0, atol=1e-12)  # stopped after one step and held there
+    fast = mpc.fallback(s, obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 5.0])), source, None, "test")
+    assert fast.u[1] == s.brake  # far from a stop: the configured deceleration
