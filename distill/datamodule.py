@@ -6,6 +6,7 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset
 
 from core.jobs import UserError
+from core.rollout import rollout
 from data import dataset
 from distill.perturb import planner_like
 
@@ -55,10 +56,7 @@ class SequenceData(WindowData):
         X, ego, others, mask = futures(arrays, self.horizon)
         arrays32 = (X, ego.astype(np.float32), others.astype(np.float32), mask)
         if self.contrast_groups and "train" not in self.splits:
-            idx = groups(arrays)
-            if not len(idx):
-                raise UserError(f"{self.dataset_dir}: contrast_groups={self.contrast_groups} but the training split has no "
-                                "counterfactual branches (dataset.branches.points=0?)")
+            idx = groups(arrays, f"{self.dataset_dir}: contrast_groups={self.contrast_groups}")
             self.groups = TensorDataset(*(torch.from_numpy(a[np.maximum(idx, 0)]) for a in arrays32),
                                         torch.from_numpy(idx >= 0))
         return TensorDataset(*(torch.from_numpy(a) for a in arrays32))
@@ -71,9 +69,10 @@ class SequenceData(WindowData):
         return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.contrast_groups, shuffle=True)}
 
 
-def groups(a) -> np.ndarray:
+def groups(a, needed_by=None) -> np.ndarray:
     """Windows that share their past at a branch point, (G, S) indices padded with -1: the episode's own window at the
-    step where a branch starts and each branch's first window (same history, different ego futures)."""
+    step where a branch starts and each branch's first window (same history, different ego futures); needed_by: the
+    option that needs them, named in the error when there are none (None: an empty result is fine)."""
     first = {}  # (episode, branch) -> index of the branch's first window
     for i, (e, b, s) in enumerate(zip(a["episode"].tolist(), a["branch"].tolist(), a["step"].tolist())):
         if b and ((e, b) not in first or s < a["step"][first[e, b]]):
@@ -85,6 +84,8 @@ def groups(a) -> np.ndarray:
         j = own.get((e, int(a["step"][i])))
         if j is not None and np.array_equal(a["X"][i], a["X"][j]):  # a branch restarts from the episode's own state
             members.setdefault(j, [j]).append(i)
+    if needed_by and not members:
+        raise UserError(f"{needed_by} but the training split has no counterfactual branches (dataset.branches.points=0?)")
     width = max((len(m) for m in members.values()), default=0)
     return np.array([m + [-1] * (width - len(m)) for m in members.values()], dtype=np.int64).reshape(-1, width)
 
@@ -107,20 +108,49 @@ def futures(a, horizon):
 
 
 class DistillData(WindowData):
-    """Windows relabelled by a teacher (next positions and v^T J), widened with planner-like copies of every window."""
+    """Windows relabelled by a teacher (next positions and v^T J), widened with planner-like copies of every window;
+    with rollout_groups > 0 each training batch also carries that many branch groups (one past under the episode's own
+    and its counterfactual egos' futures) with the teacher's rollouts under each."""
 
-    def __init__(self, dataset_dir, batch_size, teacher, perturbed_copies, perturb, projections, seed):
-        """teacher: a predictor with phi_vjp; perturb: planner_like's ranges; projections: cotangents v per window."""
+    def __init__(self, dataset_dir, batch_size, teacher, perturbed_copies, perturb, projections, seed, horizon,
+                 rollout_groups):
+        """teacher: a predictor with phi_vjp; perturb: planner_like's ranges; projections: cotangents v per window;
+        horizon: steps of the teacher's branch rollouts; rollout_groups: branch groups per training batch (0: none)."""
         super().__init__(dataset_dir, batch_size)
         self.teacher, self.perturbed_copies, self.perturb, self.projections = teacher, perturbed_copies, dict(perturb), projections
+        self.horizon, self.rollout_groups = horizon, rollout_groups
         self.rng = np.random.default_rng(seed)  # one stream for both splits, train first
 
     def tensors(self, arrays):
-        """Dataset windows and their planner-like copies with the teacher's labels, float32."""
+        """Dataset windows and their planner-like copies with the teacher's labels, float32; on the training split also
+        its branch groups with the teacher's rollouts."""
         X = np.concatenate([arrays["X"]] + [planner_like(arrays["X"], self.rng, **self.perturb)
                                             for _ in range(self.perturbed_copies)])
+        if self.rollout_groups and "train" not in self.splits:
+            self.groups = TensorDataset(*(torch.from_numpy(a) for a in teacher_rollouts(self.teacher, arrays, self.horizon,
+                                                                                     self.dataset_dir)))
         return TensorDataset(*(torch.tensor(a, dtype=torch.float32)
                                for a in (X, *label(self.teacher, X, self.rng, self.projections))))
+
+    def train_dataloader(self):
+        """Shuffled training batches; with rollout groups a dict {windows, groups} Lightning cycles together."""
+        windows = super().train_dataloader()
+        if not self.rollout_groups:
+            return windows
+        return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.rollout_groups, shuffle=True)}
+
+
+def teacher_rollouts(teacher, arrays, horizon, where, chunk=1024):
+    """The split's branch groups as float32 X (G, S, T_obs, SLOTS, 2) and ego futures (G, S, H, 2), the teacher's
+    rollouts of the other cars under each (G, S, H, N, 2) and the member mask (G, S)."""
+    idx = groups(arrays, f"{where}: rollout_groups > 0")
+    X, ego, _, _ = futures(arrays, horizon)
+    Xg, egog = X[np.maximum(idx, 0)].astype(float), ego[np.maximum(idx, 0)]
+    flat_X, flat_ego = Xg.reshape(-1, *Xg.shape[2:]), egog.reshape(-1, *egog.shape[2:])
+    target = np.concatenate([rollout(teacher.phi, flat_X[i:i + chunk], flat_ego[i:i + chunk])[:, :, 1:]
+                             for i in range(0, len(flat_X), chunk)])
+    return (Xg.astype(np.float32), egog.astype(np.float32), target.reshape(idx.shape + target.shape[1:]).astype(np.float32),
+            idx >= 0)
 
 
 def label(teacher, X, rng, projections, chunk=1024):

@@ -76,28 +76,45 @@ class TeacherTask(_Task):
         return loss
 
     def contrast(self, X, ego, others, mask, member):
-        """Mean squared error, in units of rollout_scale_m, of each branch group's rollouts about the group's mean: the
-        predicted difference the ego's choice makes against the recorded one, what react_corr and react_gain score.
+        """branch_contrast of the rollouts of each branch group against the recorded futures, in rollout_scale_m units.
         X (G, S, T_obs, SLOTS, 2), ego (G, S, H, 2), others (G, S, H, N, 2), mask (G, S, H), member (G, S)."""
-        G, S = member.shape
-        pred = rollout(self.net, X.flatten(0, 1), ego.flatten(0, 1))[:, :, 1:].unflatten(0, (G, S))  # (G, S, H, N, 2)
-        w = (member[:, :, None] & mask).to(pred.dtype)[..., None, None]  # (G, S, H, 1, 1)
+        pred = group_rollout(self.net, X, ego)
+        return branch_contrast(pred, others, member[:, :, None] & mask, self.hparams.rollout_scale_m)
 
-        def about_mean(v):
-            return (v - (v * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp(min=1)) * w
 
-        dev = (about_mean(pred) - about_mean(others)) / self.hparams.rollout_scale_m
-        return dev.pow(2).sum() / (w.sum() * dev.shape[-2] * dev.shape[-1]).clamp(min=1)
+def group_rollout(net, X, ego):
+    """The others' Remark-2 rollouts (G, S, H, N, 2) of branch groups: windows X (G, S, T_obs, SLOTS, 2) under ego
+    futures (G, S, H, 2)."""
+    G, S = X.shape[:2]
+    return rollout(net, X.flatten(0, 1), ego.flatten(0, 1))[:, :, 1:].unflatten(0, (G, S))
+
+
+def branch_contrast(pred, target, valid, scale_m):
+    """Mean squared error, in units of scale_m, of each branch group's futures about the group's mean: the predicted
+    difference the ego's choice makes against the target's, what react_corr and react_gain score. pred, target
+    (G, S, H, N, 2); valid (G, S, H): the members and steps that count."""
+    w = valid.to(pred.dtype)[..., None, None]
+
+    def about_mean(v):
+        return (v - (v * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp(min=1)) * w
+
+    dev = (about_mean(pred) - about_mean(target)) / scale_m
+    return dev.pow(2).sum() / (w.sum() * dev.shape[-2] * dev.shape[-1]).clamp(min=1)
 
 
 class StudentTask(_Task):
     """Sobolev distillation: squared output error / scale_m^2 + jac_weight * squared error of the random projections
-    v^T J (an unbiased estimate of the Jacobian error's Frobenius norm) + the spectral penalty."""
+    v^T J (an unbiased estimate of the Jacobian error's Frobenius norm) + the spectral penalty; with branch groups (a
+    dict batch), the teacher's rollouts too: rollout_weight x their squared error and contrast_weight x their
+    branch_contrast, in rollout_scale_m units. One-step outputs and Jacobians alone carried only about half the
+    teacher's response to the ego into the student: it builds up over the rollout, where one-step errors compound."""
 
     def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, jac_weight: float,
-                 ego_jac_weight: float, spectral_weight: float, cert_weight: float):
-        """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty and
-        of the log of the certified A3 constant L (Theorem 1's rho grows with it)."""
+                 ego_jac_weight: float, spectral_weight: float, cert_weight: float, rollout_weight: float,
+                 contrast_weight: float, rollout_scale_m: float):
+        """scale_m: output loss unit (m); weights of the Jacobian term, of its ego columns, of the spectral penalty, of
+        the log of the certified A3 constant L (Theorem 1's rho grows with it), of the teacher-rollout and branch-
+        contrast terms; rollout_scale_m: their loss unit (m)."""
         super().__init__(net, lr, weight_decay)
         # d others / d ego is small beside the others' own dynamics, yet it is the interaction the planner uses
         columns = torch.ones(T_OBS, SLOTS, 2)
@@ -118,7 +135,18 @@ class StudentTask(_Task):
         return head_L(self.net.s, layers[-1].weight.norm(dim=1), lip, hess).max()
 
     def _step(self, batch, stage):
-        """Loss on (window, teacher next, cotangents v, teacher v^T J) and its logged parts."""
+        """Loss on (window, teacher next, cotangents v, teacher v^T J) and its logged parts; a dict batch adds its branch
+        groups' teacher-rollout terms."""
+        if isinstance(batch, dict):
+            X, ego, target, member = batch["groups"]
+            pred = group_rollout(self.net, X, ego)
+            w = member.to(pred.dtype)[:, :, None, None, None]
+            rollout_loss = (((pred - target) * w / self.hparams.rollout_scale_m).pow(2).sum()
+                            / (w.sum() * pred[0, 0].numel()).clamp(min=1))
+            contrast = branch_contrast(pred, target, member[:, :, None].expand(pred.shape[:3]), self.hparams.rollout_scale_m)
+            self._log(stage, rollout_loss=rollout_loss, contrast=contrast)
+            return (self._step(batch["windows"], stage) + self.hparams.rollout_weight * rollout_loss
+                    + self.hparams.contrast_weight * contrast)
         X, y_t, v, vJ_t = batch
         X = X.requires_grad_()
         y_s = self.net(X)

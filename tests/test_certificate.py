@@ -141,7 +141,8 @@ def test_training_penalty_is_the_global_certificates_L(student):
     """StudentTask.certified_L (torch, differentiable) is distill.certificate.constants' L of the same weights."""
     from distill.tasks import StudentTask
 
-    task = StudentTask({"_target_": "torch.nn.Identity"}, 1e-3, 0.0, 0.01, 1.0, 1.0, 0.0, cert_weight=1.0)
+    task = StudentTask({"_target_": "torch.nn.Identity"}, 1e-3, 0.0, 0.01, 1.0, 1.0, 0.0, cert_weight=1.0, rollout_weight=0.0,
+                       contrast_weight=0.0, rollout_scale_m=0.1)
     task.net = student.module
     L = task.certified_L()
     assert float(L.detach()) == pytest.approx(certificate.constants(student.weights, student.s, BOX)["L"], rel=1e-5)

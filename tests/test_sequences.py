@@ -1,13 +1,18 @@
-"""The teacher's multi-step data and loss: recorded futures per window, the masked rollout term, branch groups and
-their contrast term against a direct computation."""
+"""The multi-step data and losses: recorded futures per window, the teacher's masked rollout term, branch groups and
+their contrast term against a direct computation, the teacher's rollouts on them and the student's terms fitting them."""
 import numpy as np
 import pytest
 import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
+from conftest import compose_cfg
+from core.jobs import UserError
 from data import dataset
-from distill.datamodule import futures, groups
+from distill.datamodule import futures, groups, teacher_rollouts
 from distill.metrics import rollout_cases
-from distill.tasks import TeacherTask
+from distill.models import TorchPredictor
+from distill.tasks import StudentTask, TeacherTask, group_rollout
 
 NET = {"_target_": "distill.teacher.SocialTeacher", "hidden": 8, "pool": 8, "decoder": [16], "pos_scale": 10.0,
        "vel_scale": 0.5, "acc_scale": 0.05}
@@ -96,3 +101,51 @@ def test_contrast_term_scores_the_predicted_difference_between_branches(tiny_dat
                 total += (((p - p.mean(0)) - (o - o.mean(0))) ** 2).sum() / 0.5**2
                 count += ok.sum() * p.shape[1] * 2
     assert got == pytest.approx(total / count, rel=1e-4) and got > 0
+
+
+def test_teacher_rollouts_label_each_branch_member_with_the_teachers_own_rollout(tiny_dataset):
+    a = dataset.load(tiny_dataset, "train")
+    teacher = TorchPredictor("teacher", instantiate(NET).eval())
+    X, ego, target, member = teacher_rollouts(teacher, a, 8, tiny_dataset)
+    g = groups(a)
+    assert X.shape[:2] == member.shape == g.shape and target.shape == (*g.shape, 8, 4, 2)
+    np.testing.assert_array_equal(member, g >= 0)
+    _, ego_all, _, _ = futures(a, 8)
+    for k in (0, len(g) - 1):  # one member at a time, straight from the teacher's phi
+        for s in np.flatnonzero(g[k] >= 0):
+            window, want = a["X"][g[k, s]].astype(float), []
+            for t in range(8):
+                nxt = teacher.phi(window[None])[0]
+                nxt[0] = ego_all[g[k, s], t]
+                want.append(nxt[1:])
+                window = np.concatenate([window[1:], nxt[None]])
+            np.testing.assert_allclose(target[k, s], np.stack(want), atol=1e-4)
+    with pytest.raises(UserError, match="rollout_groups > 0 but the training split has no counterfactual branches"):
+        teacher_rollouts(teacher, {k: v[a["branch"] == 0] for k, v in a.items()}, 8, tiny_dataset)
+
+
+def test_student_branch_terms_fit_the_teachers_rollouts_and_their_response(tiny_dataset):
+    torch.manual_seed(0)
+    net = compose_cfg("distill", ["model=student"]).model.net
+    task = StudentTask(OmegaConf.to_container(net), 1e-3, 0.0, scale_m=0.01, jac_weight=1.0, ego_jac_weight=1.0,
+                       spectral_weight=0.0, cert_weight=0.0, rollout_weight=2.0, contrast_weight=3.0, rollout_scale_m=0.5)
+    task.log = lambda *args, **kwargs: None
+    a = dataset.load(tiny_dataset, "train")
+    X, ego, _, member = (torch.from_numpy(t) for t in teacher_rollouts(TorchPredictor("teacher", instantiate(NET).eval()),
+                                                                       a, 8, tiny_dataset))
+    X, ego, member = X[:5], ego[:5], member[:5]
+    with torch.no_grad():
+        own = group_rollout(task.net, X, ego)
+    windows = [torch.randn(4, 8, 5, 2), torch.randn(4, 5, 2), torch.randn(4, 2, 5, 2), torch.randn(4, 2, 80)]
+    base = task._step(windows, "val").item()
+    step = lambda target: task._step({"windows": windows, "groups": (X, ego, target, member)}, "val").item()  # noqa: E731
+    assert step(own) == pytest.approx(base, rel=1e-5)  # its own rollouts: no rollout error, no contrast
+    shift = torch.zeros_like(own)
+    shift[..., 0] = 0.25  # 0.25 m on every x, common to each group: 0.25 m error (half a unit, squared 1/8 per coordinate)
+    assert step(own + shift) == pytest.approx(base + 2.0 * 0.125, rel=1e-4)
+    pushed = own.clone()
+    pushed[:, 1] += 0.5  # member 1 of every group moved 0.5 m: a response to its ego
+    S = member.sum(1).float()
+    contrast = sum(((1 - 1 / S[k]) ** 2 + (S[k] - 1) / S[k] ** 2) * 8 * 4 * 2 for k in range(5)) / (member.sum() * 8 * 8)
+    rollout_err = 5 * 8 * 4 * 2 / (member.sum() * 8 * 8)
+    assert step(pushed) == pytest.approx(base + 2.0 * rollout_err.item() + 3.0 * contrast.item(), rel=1e-4)
