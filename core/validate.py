@@ -285,6 +285,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     **{f"mpc.admm.balance_rho.{k}": POS for k in ("rho_min", "rho_max")},
     "zstep.settings.reuse_radius": Real(0, optional=True), "gradients.rollout": Bool(optional=True),
     "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
+    "mpc.check_relative": Bool(),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (
         "trust_radius", "min_radius", "max_radius", "tol", "slack_penalty", "slack_tol", "opt_tol", "viol_ineq_tol", "mu0",

@@ -43,6 +43,7 @@ class Settings:
     osqp: dict  # OSQP settings of every sub-problem
     check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
     check_steps: int  # steps of that rollout checked: only its start is ever applied, the rest is replanned
+    check_relative: bool  # also accept a plan no less safe than braking in lane (see acceptable)
     brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
 
     @property
@@ -137,11 +138,35 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
     return prob, start._replace(Z=np.clip(start.Z, lo, hi))
 
 
+def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
+    """Whether a plan whose checked rollout has min b_i = b_min (m^2) may be applied: b_min >= -check_tol, or with
+    check_relative no worse than braking in lane (its b_min, capped at 0, minus check_tol). Beside a car that stops to
+    let a straddling ego in, every plan breaks b_i >= 0 for a while; judged against zero they all fail, and braking to a
+    stop there waits for a car that waits for the ego."""
+    if b_min >= -s.check_tol:
+        return True
+    return s.check_relative and b_min >= min(0.0, plan_safe(s, obs, source, *brake_plan(s, obs.z0))[0]) - s.check_tol
+
+
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
     """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
     Z = simulate(obs.z0, Delta, alpha, s.params)
     values = source.values(obs.history, ego_xy(Z, s.T_p)[None])[0]
     return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf)), Z
+
+
+def brake_plan(s: Settings, z0):
+    """Controls Delta, alpha (T_p,) that steer to the current lane's centre (straddling: the lane away from y_ref) and
+    brake at s.brake to a stop, never into reverse (the bicycle's v may go negative)."""
+    z, Delta, alpha = np.asarray(z0, float), [], []
+    lane_y = s.road.centre(s.road.lane_of(z[1]))
+    if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
+        lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
+    for _ in range(s.T_p):
+        Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
+        alpha.append(max(s.brake, -z[3] / s.params.dt))
+        z = bicycle.step(z, [Delta[-1], alpha[-1]], s.params)
+    return np.array(Delta), np.array(alpha)
 
 
 def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResult:
@@ -153,22 +178,14 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
     if warm is not None:
         prev = shift(warm)._replace(zstate=None)
         b_min, Z = plan_safe(s, obs, source, prev.Delta, prev.alpha) if seen else (np.nan, prev.Z)
-        if not seen or b_min >= -s.check_tol:
+        if not seen or acceptable(s, obs, source, b_min):
             return StepResult(u=np.array([prev.Delta[0], prev.alpha[0]]), plan=prev._replace(Z=Z) if z_ok else None,
                               J=J_of(s, obs.u_prev, prev.Delta, prev.alpha, Z), iters=0, reason="fallback", F_norm=np.nan,
                               b_min=b_min, slack=np.nan, fallback=f"{why}; shifted previous plan")
     if not z_ok:
         return StepResult(u=np.array([0.0, s.brake]), plan=None, J=np.nan, iters=0, reason="fallback", F_norm=np.nan,
                           b_min=np.nan, slack=np.nan, fallback=f"{why}; braking straight")
-    z, Delta, alpha = np.asarray(obs.z0, float), [], []
-    lane_y = s.road.centre(s.road.lane_of(z[1]))
-    if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
-        lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
-    for _ in range(s.T_p):
-        Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
-        alpha.append(max(s.brake, -z[3] / s.params.dt))  # to a stop, never into reverse (the bicycle's v may go negative)
-        z = bicycle.step(z, [Delta[-1], alpha[-1]], s.params)
-    Delta, alpha = np.array(Delta), np.array(alpha)
+    Delta, alpha = brake_plan(s, obs.z0)
     Z = simulate(obs.z0, Delta, alpha, s.params)
     plan = admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p))
     return StepResult(u=np.array([Delta[0], alpha[0]]), plan=plan, J=J_of(s, obs.u_prev, Delta, alpha, Z), iters=0,
@@ -187,7 +204,7 @@ def mpc_step(s: Settings, obs: Observation, source, warm) -> StepResult:
     if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
         return fallback(s, obs, source, warm, "non-finite iterate")
     b_min = min(plan_safe(s, obs, source, st.Delta, st.alpha)[0], solve.zinfo.get("b_min", np.inf))
-    if b_min < -s.check_tol:
+    if not acceptable(s, obs, source, b_min):
         why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
         return fallback(s, obs, source, warm, f"{why} (min b_i {b_min:.2f} m^2)")
     return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=prob.J(st), iters=solve.iters, reason=solve.reason,

@@ -12,7 +12,7 @@ from conftest import compose_cfg
 from core.jobs import UserError, guarded, mlflow_run
 from planner import cli, mpc
 from planner.closed_loop import backfill
-from planner.setup import planner_config, setup
+from planner.setup import make, planner_config, setup
 
 
 @pytest.fixture(scope="module")
@@ -100,3 +100,21 @@ def test_braking_fallback_stops_the_ego_and_never_reverses(start):
     np.testing.assert_allclose(v, 0.0, atol=1e-12)  # stopped after one step and held there
     fast = mpc.fallback(s, obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 5.0])), source, None, "test")
     assert fast.u[1] == s.brake  # far from a stop: the configured deceleration
+
+
+@pytest.mark.parametrize("relative", [False, True])
+def test_beside_a_car_a_plan_no_worse_than_braking_is_acceptable_only_with_check_relative(relative):
+    _, source, s = make("two_lane", ["gradients=cv", f"mpc.check_relative={relative}"])
+    z0 = np.array([0.0, 1.0, 0.0, 5.0])  # straddling towards the target lane, 3 m from a car beside it at 5 m/s
+    cars = np.array([[0.0, 4.0], [60.0, 4.0], [80.0, 4.0], [100.0, 4.0]])
+    history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
+    obs = mpc.Observation(z0, np.zeros(2), history)
+    Delta, alpha = mpc.brake_plan(s, z0)
+    b_brake = mpc.plan_safe(s, obs, source, Delta, alpha)[0]
+    assert 3.0**2 - s.R**2 <= b_brake < -1.0  # braking back to the lane centre stays inside R for the checked steps too
+    keep = mpc.plan_safe(s, obs, source, Delta, np.zeros(s.T_p))[0]  # the same steering at 5 m/s, still beside it
+    towards = mpc.plan_safe(s, obs, source, np.full(s.T_p, 0.3), np.zeros(s.T_p))[0]  # steer at it
+    assert b_brake - s.check_tol <= keep < -s.check_tol and towards < b_brake - s.check_tol
+    assert mpc.acceptable(s, obs, source, keep) == relative
+    assert not mpc.acceptable(s, obs, source, towards)
+    assert mpc.acceptable(s, obs, source, -s.check_tol)  # within the tolerance: always
