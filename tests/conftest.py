@@ -46,7 +46,8 @@ def tiny_models(tiny_dataset, tmp_path_factory):
                                            "trainer.enable_progress_bar=false", f"model={name}", *overrides]))
 
     teacher = job("teacher", f"trainer.max_epochs={TINY_TEACHER_EPOCHS}")
-    student = job("student", "trainer.max_epochs=2", "model.certificate.samples=1500")
+    student = job("student", "trainer.max_epochs=2", "model.certificate.samples=1500", "model.task.rollout_weight=1",
+                  "model.task.contrast_weight=1", "model.data.rollout_groups=8")  # the branch-rollout terms too
     return models_dir, teacher, student, runs
 
 

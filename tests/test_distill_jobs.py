@@ -44,7 +44,7 @@ def test_student_job_certifies_and_logs(trained):
     runs = mlflow.search_runs(experiment_names=["distill"], filter_string="params.model = 'student'")
     names = ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "jac_rel_err", "params", "forward_us", "cert_s_x",
              "cert_s_y", "cert_theta_x", "cert_theta_y", "cert_L", "cert_rho_bound", "emp_theta_max", "emp_L_max",
-             "cert_L_J", "cert_M", "cert_sigma_min_C", *(f"cert_{sc}_{k}" for sc in ("two_lane", "three_lane", "random")
+             "cert_L_J", "cert_M", "cert_sigma_min_C", "train_rollout_loss", "train_contrast", *(f"cert_{sc}_{k}" for sc in ("two_lane", "three_lane", "random")
                                                            for k in ("L_J", "M", "sigma_min_C", "rho_bound", "ratio_L")))
     assert all(0 < doc["scenarios"][sc]["rho_bound"] <= doc["constants_m"]["rho_bound"] for sc in ("two_lane", "three_lane"))
     assert all(f"metrics.{n}" in runs.columns and np.isfinite(runs[f"metrics.{n}"].iloc[0]) for n in names)
