@@ -127,6 +127,11 @@ def check_inputs(cfg: DictConfig):
     """Every input checked before any work: the config, the splits the job reads (checksums), the resumed checkpoint and
     the student's teacher; returns the teacher (None for model=teacher)."""
     validate.check(cfg, "distill")
+    groups = "contrast_groups" if cfg.model.name == "teacher" else "rollout_groups"
+    for weight in ("rollout_weight", "contrast_weight") if groups == "rollout_groups" else ("contrast_weight",):
+        if cfg.model.task.get(weight, 0) and not cfg.model.data.get(groups, 0):
+            raise UserError(f"model.task.{weight}={cfg.model.task[weight]} needs model.data.{groups} > 0 (branch groups "
+                            "per batch); without them the term is never computed")
     for split in dict.fromkeys(("train", "val", cfg.eval_split)):
         dataset.load(cfg.dataset_dir, split)  # a missing or corrupt split stops here, naming the file
     writable(cfg.models_dir, "models_dir")

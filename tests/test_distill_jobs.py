@@ -116,3 +116,12 @@ def test_missing_model_and_dataset_name_the_command(tiny_dataset, tmp_path):
         job(tiny_dataset, tmp_path, tmp_path / "run", "model=student")  # the student needs a teacher
     with pytest.raises(UserError, match="make-dataset"):
         job(tmp_path / "nope", tmp_path, tmp_path / "run", "model=teacher")
+
+
+@pytest.mark.parametrize("model, weight, groups", [("teacher", "contrast_weight", "contrast_groups"),
+                                                   ("student", "rollout_weight", "rollout_groups"),
+                                                   ("student", "contrast_weight", "rollout_groups")])
+def test_a_branch_term_without_branch_groups_is_one_clear_error(tiny_dataset, tmp_path, model, weight, groups):
+    with pytest.raises(UserError, match=rf"model.task.{weight}=1.0 needs model.data.{groups} > 0"):
+        job(tiny_dataset, tmp_path, tmp_path / "run", f"model={model}", f"model.task.{weight}=1.0")
+    assert not list(tmp_path.glob("*.ckpt"))  # nothing trained or written
