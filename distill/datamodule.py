@@ -12,7 +12,10 @@ from distill.perturb import planner_like
 
 
 class WindowData(L.LightningDataModule):
-    """Train/val (window, next) pairs from data/<name>/ in metres, as recorded."""
+    """Train/val (window, next) pairs from data/<name>/ in metres, as recorded. A subclass that sets `group_batch` > 0
+    and fills `groups` (a TensorDataset of branch groups) gets that many groups beside every training batch."""
+
+    group_batch = 0  # branch groups per training batch
 
     def __init__(self, dataset_dir, batch_size):
         """dataset_dir: a make-dataset folder; batch_size: training batch (validation uses 4x)."""
@@ -31,8 +34,11 @@ class WindowData(L.LightningDataModule):
         return TensorDataset(torch.from_numpy(arrays["X"]), torch.from_numpy(arrays["Y"]))
 
     def train_dataloader(self):
-        """Shuffled training batches."""
-        return DataLoader(self.splits["train"], batch_size=self.batch_size, shuffle=True)
+        """Shuffled training batches; with branch groups a dict {windows, groups} Lightning cycles together."""
+        windows = DataLoader(self.splits["train"], batch_size=self.batch_size, shuffle=True)
+        if not self.group_batch:
+            return windows
+        return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.group_batch, shuffle=True)}
 
     def val_dataloader(self):
         """Validation batches, in order."""
@@ -49,24 +55,17 @@ class SequenceData(WindowData):
         """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only); contrast_groups:
         branch groups per training batch (0: none)."""
         super().__init__(dataset_dir, batch_size)
-        self.horizon, self.contrast_groups = horizon, contrast_groups
+        self.horizon, self.group_batch = horizon, contrast_groups
 
     def tensors(self, arrays):
         """The split's windows with their futures, float32; on the training split also its branch groups."""
         X, ego, others, mask = futures(arrays, self.horizon)
         arrays32 = (X, ego.astype(np.float32), others.astype(np.float32), mask)
-        if self.contrast_groups and "train" not in self.splits:
-            idx = groups(arrays, f"{self.dataset_dir}: contrast_groups={self.contrast_groups}")
+        if self.group_batch and "train" not in self.splits:
+            idx = groups(arrays, f"{self.dataset_dir}: contrast_groups={self.group_batch}")
             self.groups = TensorDataset(*(torch.from_numpy(a[np.maximum(idx, 0)]) for a in arrays32),
                                         torch.from_numpy(idx >= 0))
         return TensorDataset(*(torch.from_numpy(a) for a in arrays32))
-
-    def train_dataloader(self):
-        """Shuffled training batches; with contrast groups a dict {windows, groups} Lightning cycles together."""
-        windows = super().train_dataloader()
-        if not self.contrast_groups:
-            return windows
-        return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.contrast_groups, shuffle=True)}
 
 
 def groups(a, needed_by=None) -> np.ndarray:
@@ -118,7 +117,7 @@ class DistillData(WindowData):
         horizon: steps of the teacher's branch rollouts; rollout_groups: branch groups per training batch (0: none)."""
         super().__init__(dataset_dir, batch_size)
         self.teacher, self.perturbed_copies, self.perturb, self.projections = teacher, perturbed_copies, dict(perturb), projections
-        self.horizon, self.rollout_groups = horizon, rollout_groups
+        self.horizon, self.group_batch = horizon, rollout_groups
         self.rng = np.random.default_rng(seed)  # one stream for both splits, train first
 
     def tensors(self, arrays):
@@ -126,18 +125,11 @@ class DistillData(WindowData):
         its branch groups with the teacher's rollouts."""
         X = np.concatenate([arrays["X"]] + [planner_like(arrays["X"], self.rng, **self.perturb)
                                             for _ in range(self.perturbed_copies)])
-        if self.rollout_groups and "train" not in self.splits:
+        if self.group_batch and "train" not in self.splits:
             self.groups = TensorDataset(*(torch.from_numpy(a) for a in teacher_rollouts(self.teacher, arrays, self.horizon,
                                                                                      self.dataset_dir)))
         return TensorDataset(*(torch.tensor(a, dtype=torch.float32)
                                for a in (X, *label(self.teacher, X, self.rng, self.projections))))
-
-    def train_dataloader(self):
-        """Shuffled training batches; with rollout groups a dict {windows, groups} Lightning cycles together."""
-        windows = super().train_dataloader()
-        if not self.rollout_groups:
-            return windows
-        return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.rollout_groups, shuffle=True)}
 
 
 def teacher_rollouts(teacher, arrays, horizon, where, chunk=1024):

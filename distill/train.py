@@ -123,12 +123,17 @@ SCENARIO_METRICS = ("theta_x", "theta_y", "L", "L_1", "L_g", "L_J", "M", "sigma_
                     "ratio_theta_y", "ratio_L")
 
 
+# each model's branch-group setting and the loss weights that need it
+BRANCH_TERMS = {"teacher": ("contrast_groups", ("contrast_weight",)),
+                "student": ("rollout_groups", ("rollout_weight", "contrast_weight"))}
+
+
 def check_inputs(cfg: DictConfig):
     """Every input checked before any work: the config, the splits the job reads (checksums), the resumed checkpoint and
     the student's teacher; returns the teacher (None for model=teacher)."""
     validate.check(cfg, "distill")
-    groups = "contrast_groups" if cfg.model.name == "teacher" else "rollout_groups"
-    for weight in ("rollout_weight", "contrast_weight") if groups == "rollout_groups" else ("contrast_weight",):
+    groups, weights = BRANCH_TERMS[cfg.model.name]
+    for weight in weights:
         if cfg.model.task.get(weight, 0) and not cfg.model.data.get(groups, 0):
             raise UserError(f"model.task.{weight}={cfg.model.task[weight]} needs model.data.{groups} > 0 (branch groups "
                             "per batch); without them the term is never computed")
