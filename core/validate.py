@@ -241,7 +241,7 @@ TRAINER = {
 }
 
 DISTILL = {
-    **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1),
+    **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1, nullable=True),
     "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "models_dir": Text(), "run_dir": Text(),
     "ckpt_path": Text(nullable=True), "dataset.name": Text(),
     "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,

@@ -155,7 +155,7 @@ def run(cfg: DictConfig):
     returns the metrics."""
     name = cfg.model.name
     teacher = check_inputs(cfg)
-    torch.set_num_threads(cfg.threads)
+    torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // cfg.trainer.devices))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     rank0 = int(os.environ.get("LOCAL_RANK", 0)) == 0  # Lightning's DDP launcher re-runs this job in child processes
     with (mlflow_run("distill", cfg, run_name=name, model=name) if rank0 else nullcontext()) as run_:
