@@ -12,7 +12,8 @@ Scores over all pairs, cars, steps and both coordinates:
   react_gain  least-squares slope of predicted on true through the origin, <p, t> / <t, t>: 1 is the right magnitude
               along the truth, 0 no response (or one uncorrelated with it);
   react_hit   over every (pair, car) whose true response peaks above score.threshold over T_p, the share whose peak error
-              max_t |p_t - t_t| is within score.tolerance of that peak.
+              max_t |p_t - t_t| is within score.tolerance of that peak;
+and, with score.resamples > 0, 95% bootstrap intervals of react_corr and react_gain over the branch states (*_lo, *_hi).
 
     evaluate-interaction [sources=[cv,analytic,reference]] [states=34] [models_dir=models]
 """
@@ -42,7 +43,7 @@ SCHEMA = {
     "branch.tries": validate.Int(1), "plans.kinds": validate.ListOf(validate.OneOf(KINDS)),
     "plans.y_push": validate.Range(0), "plans.dv": validate.Range(0), "plans.delay": validate.ListOf(validate.Int(0), 2),
     "plans.k_y": POS, "plans.a_bounds": validate.Range(strict=True), "reference.draws": validate.Int(1),
-    "score.threshold": validate.Real(0), "score.tolerance": validate.Real(0),
+    "score.threshold": validate.Real(0), "score.tolerance": validate.Real(0), "score.resamples": validate.Int(0),
     "dataset.seed": validate.SEED, "dataset.episodes": validate.Int(1),
 }
 
@@ -83,16 +84,36 @@ def peaks(response):
     return np.linalg.norm(response, axis=-1).max(axis=1)
 
 
-def scores(pred, true, threshold: float, tolerance: float) -> dict:
-    """react_corr, react_gain, react_hit of predicted against true responses, both (P, T_p, N, 2) in m (module doc)."""
+def corr_gain(pred, true) -> tuple[float, float]:
+    """react_corr and react_gain of predicted against true responses of the same shape, in m (module doc)."""
     p, t = np.ravel(pred), np.ravel(true)
     corr = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 and t.std() > 0 else 0.0
     gain = float(p @ t / (t @ t)) if t @ t > 0 else float("nan")
+    return corr, gain
+
+
+def scores(pred, true, threshold: float, tolerance: float) -> dict:
+    """react_corr, react_gain, react_hit of predicted against true responses, both (P, T_p, N, 2) in m (module doc)."""
+    corr, gain = corr_gain(pred, true)
     peak = peaks(true)
     real = peak > threshold
     err = peaks(np.asarray(pred) - true)
     hit = float(np.mean(err[real] <= tolerance * peak[real])) if real.any() else float("nan")
     return {"react_corr": corr, "react_gain": gain, "react_hit": hit}
+
+
+def intervals(pred, true, states, resamples: int, suffix: str = "", seed: int = 0) -> dict:
+    """95% percentile-bootstrap intervals {react_corr<suffix>_lo, _hi, react_gain<suffix>_lo, _hi} of pred against true
+    (P, T_p, N, 2), resampling branch states: the pairs of one state (states: (P,) labels) share its world, so they are
+    drawn together. Real responses are rare (about 6% of pairs), so the scores move by tenths between state sets."""
+    members = [np.flatnonzero(states == k) for k in np.unique(states)]
+    rng = np.random.default_rng(seed)
+    draws = np.array([corr_gain(pred[idx], true[idx]) for idx in
+                      (np.concatenate([members[i] for i in rng.integers(len(members), size=len(members))])
+                       for _ in range(resamples))])
+    lo, hi = np.nanpercentile(draws, [2.5, 97.5], axis=0)
+    return {f"react_corr{suffix}_lo": lo[0], f"react_corr{suffix}_hi": hi[0], f"react_gain{suffix}_lo": lo[1],
+            f"react_gain{suffix}_hi": hi[1]}
 
 
 def predict(name: str, pairs: list[Pair], cfg) -> dict | None:
@@ -147,8 +168,9 @@ def benchmark_stats(pairs: list[Pair], true, threshold: float) -> dict:
 
 
 def write_table(path: Path, table: dict):
-    """interaction.csv: one row per source, its react_* scores and seconds."""
-    cols = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac", "seconds"]
+    """interaction.csv: one row per source, its react_* scores (with their intervals where computed) and seconds."""
+    cols = [f"react_{k}{s}{e}" for s in ("", "_jac") for k in ("corr", "gain", "hit")
+            for e in (("", "_lo", "_hi") if k != "hit" else ("",))] + ["seconds"]
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["source", *cols])
@@ -171,6 +193,7 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     pairs = make_pairs(scenario, dict(cfg.dataset.policy), cfg)
     true = np.stack([p.response for p in pairs])
+    states = np.array([f"{p.seed}/{p.step}" for p in pairs])
     common = benchmark_stats(pairs, true, cfg.score.threshold)
     log.info(f"{len(pairs)} pairs from {cfg.states} held-out branch states (seeds from {cfg.seed_offset}) in "
              f"{time.perf_counter() - t0:.1f} s; pairs with a real response (> {cfg.score.threshold} m): "
@@ -184,6 +207,9 @@ def run(cfg: DictConfig) -> dict:
             continue
         metrics = {f"{k}{suffix}": v for suffix, pred in preds.items()
                    for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()}
+        if cfg.score.resamples:
+            for suffix, pred in preds.items():
+                metrics.update(intervals(pred, true, states, cfg.score.resamples, suffix))
         metrics["seconds"] = time.perf_counter() - t0
         with mlflow_run("interaction", cfg, run_name=f"interaction-{name}", source=name):
             mlflow.log_metrics({**metrics, **common})

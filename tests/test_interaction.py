@@ -9,7 +9,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from bench.branches import Pair, execute, heldout_seeds, make_pairs, redraw
-from bench.interaction import first_order_response, load_source, rollout_response, run, scores
+from bench.interaction import first_order_response, intervals, load_source, rollout_response, run, scores
 from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import SLOTS, T_OBS
@@ -99,6 +99,21 @@ def test_scores_against_hand_computed_values():
     assert s["react_gain"] == pytest.approx(np.sum((true + noise) * true) / np.sum(true**2))
     err = np.linalg.norm(noise, axis=-1).max(axis=1)
     assert s["react_hit"] == pytest.approx(np.mean(err[peak > 0.2] <= 0.5 * peak[peak > 0.2]))
+
+
+def test_bootstrap_intervals_resample_whole_branch_states():
+    rng = np.random.default_rng(1)
+    true = rng.normal(0.0, 0.3, (60, T_P, 4, 2))
+    states = np.repeat(np.arange(20), 3)  # three pairs per branch state
+    exact = intervals(2.0 * true, true, states, 200, "_jac")
+    assert exact == pytest.approx({"react_corr_jac_lo": 1.0, "react_corr_jac_hi": 1.0, "react_gain_jac_lo": 2.0,
+                                   "react_gain_jac_hi": 2.0})
+    noisy = true + rng.normal(0.0, 0.3, true.shape)
+    ci = intervals(noisy, true, states, 500)
+    corr = scores(noisy, true, 0.2, 0.5)["react_corr"]
+    assert ci["react_corr_lo"] < corr < ci["react_corr_hi"] and ci["react_corr_hi"] - ci["react_corr_lo"] > 0.02
+    one_state = intervals(noisy, true, np.zeros(60), 50)  # nothing to resample: the interval is the point estimate
+    assert one_state["react_corr_lo"] == pytest.approx(corr) and one_state["react_corr_hi"] == pytest.approx(corr)
 
 
 class EgoBlind:
