@@ -108,10 +108,11 @@ def intervals(pred, true, states, resamples: int, suffix: str = "", seed: int = 
     drawn together. Real responses are rare (about 6% of pairs), so the scores move by tenths between state sets."""
     members = [np.flatnonzero(states == k) for k in np.unique(states)]
     rng = np.random.default_rng(seed)
-    draws = np.array([corr_gain(pred[idx], true[idx]) for idx in
-                      (np.concatenate([members[i] for i in rng.integers(len(members), size=len(members))])
-                       for _ in range(resamples))])
-    lo, hi = np.nanpercentile(draws, [2.5, 97.5], axis=0)
+    draws = []
+    for _ in range(resamples):
+        idx = np.concatenate([members[i] for i in rng.integers(len(members), size=len(members))])
+        draws.append(corr_gain(pred[idx], true[idx]))
+    lo, hi = np.nanpercentile(np.array(draws), [2.5, 97.5], axis=0)
     return {f"react_corr{suffix}_lo": lo[0], f"react_corr{suffix}_hi": hi[0], f"react_gain{suffix}_lo": lo[1],
             f"react_gain{suffix}_hi": hi[1]}
 
