@@ -49,7 +49,7 @@ batch: $(STAMP)
 
 # Every table and figure of the README's Results section from scratch (dataset, 3 trainings per model, held-out batches of
 # every gradient source, Table II scenarios, interaction benchmark, step-time bench): results/README-results.md and
-# results/*.png. About an hour on 2 cores; `make results-full` is the preset for a bigger machine (or a Ray cluster:
+# results/*.png. About 35 minutes on 2 cores; `make results-full` is the preset for a bigger machine (or a Ray cluster:
 # `results results_preset=full backend=ray ray.address=auto`).
 results: $(STAMP)
 	$(BIN)/results results_preset=small
