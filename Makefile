@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The whole pipeline at demo size (about 6 minutes on 2 cores once installed): data, teacher, certified student, gradient
+# The whole pipeline at demo size (about 5 minutes on 2 cores once installed): data, teacher, certified student, gradient
 # surrogate, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, then the accuracy-vs-speed table. The teacher trains 4
 # epochs here (2 min) instead of its default 12 (6.5 min: 40.6 against 42.6 mm rollout ADE; `make results` uses 12).
 demo: $(STAMP)
