@@ -179,8 +179,9 @@ class World:
         gain = self.idm_to(j, new_leader) - a_now + d.politeness * (nf_gain + of_gain)
         return new if gain > d.a_gain + d.a_bias else lane
 
-    def step(self, ego_u):
-        """Advance dt: the ego applies ego_u = [delta, a]; returns the indices pairs that collided this step."""
+    def step(self, ego_u, ego_z=None):
+        """Advance dt: the ego applies ego_u = [delta, a], or with ego_z (4,) is put at that state instead (a planned
+        path, for planner.gradients.WorldModel's copies); returns the indices pairs that collided this step."""
         p = self.params
         u = np.zeros((len(self.z), 2))
         u[0] = ego_u
@@ -193,6 +194,8 @@ class World:
             u[j] = [steer_to(self.z[j], self.road.centre(self.target_lane[j]), p), a]
         z_next = bicycle.step(self.z, u, p)
         z_next[1:, 3] = np.maximum(z_next[1:, 3], 0.0)  # human drivers stop, they do not reverse
+        if ego_z is not None:
+            z_next[0] = ego_z
         self.z = z_next
         self.t += p.dt
         self.seen = self.seen[-MEMORY:] + [z_next.copy()]

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.jobs import UserError
 from data import bicycle
 from data.world import World, overlap
 
@@ -52,6 +53,9 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
     T_obs: observed steps; others: "reactive" (the world's drivers) or "predictor" (moved by `source`)."""
     from planner.mpc import Observation
 
+    sees_world = hasattr(source.predictor, "world")  # gradients=oracle: the world itself, a diagnostic ceiling
+    if sees_world and others != "reactive":
+        raise UserError("gradients=oracle predicts with the world's own drivers; it needs world=reactive")
     ep = Episode(states=[world.z.copy()])
     history = backfill(world.z, T_obs, world.params.dt)
     start_hits = [j for j in range(1, len(world.z)) if overlap(world.z[0], world.z[j], world.road)]
@@ -63,6 +67,8 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
         if world.z[0, 0] >= x_ref:
             break
         obs = Observation(world.z[0].copy(), u_prev.copy(), history.copy())
+        if sees_world:
+            source.predictor.world = world
         t0 = time.perf_counter()
         result = planner(obs, warm)
         step_ms = 1e3 * (time.perf_counter() - t0)

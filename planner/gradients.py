@@ -4,8 +4,11 @@ Each source offers `values(history, ego_futures)` (B, T_p, SLOTS, 2) for a batch
 `jacobian(history, ego_future)` -> values (T_p, SLOTS, 2), d values / d ego xy (T_p, SLOTS, 2, T_p, 2), metres throughout.
 Built by the `gradients` config group (conf/gradients/), each option naming its class, predictor and settings.
 """
+import copy
+
 import numpy as np
 
+from core.jobs import UserError
 from core.rollout import rollout, rollout_jacobian
 
 
@@ -112,3 +115,41 @@ class CentralDifferences(Source):
         grads = (out[1:n + 1] - out[n + 1:]) / (2 * self.h)  # (n, T_p, SLOTS, 2)
         return out[0], np.moveaxis(grads, 0, -1).reshape(out.shape[1:] + ego_future.shape)
 
+
+
+class WorldModel:
+    """A ceiling for diagnosis, never a predictor the world follows: the running world itself, its drivers and their
+    true hidden decisions, driven on in deep copies with the ego put on each plan. planner.closed_loop hands it the
+    world before every step (`world`)."""
+
+    name = "oracle"
+    world = None  # the closed loop's world at the current step
+
+    def futures(self, ego_futures):
+        """Every car's xy (B, T, SLOTS, 2) after each step of each ego path (B, T, 2) (m), the ego on its path with the
+        heading and speed of each step's displacement."""
+        if self.world is None:
+            raise UserError("predictor=oracle reads the running world: only the planner's closed loop with "
+                            "world=reactive can use it")
+        out = np.empty(np.shape(ego_futures)[:2] + self.world.z[:, :2].shape)
+        dt = self.world.params.dt
+        for b, path in enumerate(np.asarray(ego_futures, dtype=float)):
+            w = copy.deepcopy(self.world)
+            for k, xy in enumerate(path):
+                d = xy - w.z[0, :2]
+                psi = np.arctan2(d[1], d[0]) if np.hypot(*d) > 1e-9 else w.z[0, 2]
+                w.step(np.zeros(2), ego_z=np.array([xy[0], xy[1], psi, np.hypot(*d) / dt]))
+                out[b, k] = w.positions
+        return out
+
+    def phi(self, window):
+        """No one-step map: the oracle is a world, not a function of the window."""
+        raise UserError("predictor=oracle has no one-step map; use it as gradients=oracle")
+
+
+class WorldOracle(CentralDifferences):
+    """gradients=oracle: the WorldModel's futures, derivatives by central differences of them (step h, m)."""
+
+    def values(self, history, ego_futures):
+        """Every car's xy (B, T_p, SLOTS, 2) under each ego plan (B, T_p, 2), from copies of the running world."""
+        return self.predictor.futures(ego_futures)

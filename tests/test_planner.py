@@ -12,6 +12,7 @@ from core.jobs import CONF_DIR, UserError
 from core.rollout import ego_xy
 from distill import models as distill_models
 from planner import admm, cli, cost, dynamics, mpc
+from data.world import steer_to
 from planner.closed_loop import backfill
 from planner.gradients import Autodiff, CentralDifferences
 from planner.qp import QP
@@ -122,7 +123,7 @@ def test_osqp_failure_falls_back(two_lane, monkeypatch):
 
 
 def test_unknown_names_and_missing_models_are_one_line_errors(tmp_path):
-    choices = "choose one of analytic, cv, fd, student, surrogate, teacher"
+    choices = "choose one of analytic, cv, fd, oracle, student, surrogate, teacher"
     with pytest.raises(UserError, match=f"unknown gradients 'bogus'; {choices}"):
         cli.check_groups(["gradients=bogus"])
     with pytest.raises(UserError, match="unknown zstep 'nope'; choose one of pygranso, sqp"):
@@ -214,3 +215,33 @@ def test_strategy_groups_build_the_named_classes():
     assert zstep.func.name == "pygranso" and zstep.keywords["settings"].maxit == cfg.zstep.settings.maxit
     assert list(cfg.method) == ["admm", "nnmpc"] and build(cfg.method.nnmpc).keywords["lengths"] == [8.0, 12.0, 16.0, 24.0, 32.0]
     assert make("two_lane", ["gradients=cv"])[2].R == pytest.approx(3.95)  # r + r_i + eps from conf/paper/table1.yaml
+
+
+def test_oracle_replays_the_worlds_own_response_and_leaves_the_world_untouched():
+    scenario, oracle, _ = make("two_lane", ["gradients=oracle"])
+
+    def nudge(world, y, steps):
+        """A deep copy of `world` driven `steps` with the ego steering to y (m) at constant speed: xy after each step."""
+        world, xy = copy.deepcopy(world), []
+        for _ in range(steps):
+            world.step(np.array([steer_to(world.z[0], y, world.params), 0.0]))
+            xy.append(world.positions)
+        return np.array(xy), world
+
+    world = nudge(scenario.make_world(0), 2.5, 5)[1]  # the ego leaning into the cooperative car's lane
+    z, t = world.z.copy(), world.t
+    true = np.stack([nudge(world, y, 8)[0] for y in (0.0, 3.0)])  # back off / push on
+    oracle.predictor.world = world
+    pred = oracle.values(backfill(z, 8, 0.2), true[:, :, 0])
+    assert np.abs(pred - true).max() < 1e-6
+    assert (true[1] - true[0])[-1, 3, 0] < -0.5  # a real response: the yielder falls back by more than half a metre
+    assert np.array_equal(world.z, z) and world.t == t
+
+
+def test_oracle_outside_the_reactive_closed_loop_is_one_line_error():
+    oracle = source("oracle")
+    with pytest.raises(UserError, match="only the planner's closed loop with world=reactive"):
+        oracle.values(np.zeros((8, 5, 2)), np.zeros((1, 8, 2)))
+    cfg = planner_config("two_lane", ["gradients=oracle", "world=predictor"])
+    with pytest.raises(UserError, match="gradients=oracle predicts with the world's own drivers; it needs world=reactive"):
+        drive(cfg, *setup(cfg), "admm")

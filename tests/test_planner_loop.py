@@ -50,5 +50,5 @@ def test_unknown_gradient_name_is_one_clear_line(tmp_path):
     out = subprocess.run([planner, "--gradients=bogus", f"out_dir={tmp_path}"], capture_output=True, text=True, env=env,
                          cwd=tmp_path)
     assert out.returncode == 2
-    assert out.stderr.strip().splitlines() == ["error: unknown gradients 'bogus'; choose one of analytic, cv, fd, student, "
-                                               "surrogate, teacher"]
+    assert out.stderr.strip().splitlines() == ["error: unknown gradients 'bogus'; choose one of analytic, cv, fd, oracle, "
+                                               "student, surrogate, teacher"]
