@@ -116,7 +116,6 @@ class CentralDifferences(Source):
         return out[0], np.moveaxis(grads, 0, -1).reshape(out.shape[1:] + ego_future.shape)
 
 
-
 class WorldModel:
     """A ceiling for diagnosis, never a predictor the world follows: the running world itself, its drivers and their
     true hidden decisions, driven on in deep copies with the ego put on each plan. planner.closed_loop hands it the

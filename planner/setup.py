@@ -12,6 +12,9 @@ from core.jobs import CONF_DIR, UserError
 from distill import certificate
 from planner import closed_loop, mpc
 
+# gradients=oracle's class and its predictor's, the running world: each pairs with the other only
+ORACLE = ("planner.gradients.WorldOracle", "planner.gradients.WorldModel")
+
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
     """The `planner` config composed for `scenario` with Hydra overrides, as the console script would compose it (inside a
@@ -54,6 +57,9 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
 
 def setup(cfg: DictConfig):
     """(scenario, gradient source, mpc.Settings) of a composed `planner` config."""
+    if (cfg.gradients._target_ == ORACLE[0]) != (cfg.gradients.predictor._target_ == ORACLE[1]):
+        raise UserError("gradients=oracle and predictor=oracle go only together: the oracle is the running world, "
+                        "not a map of the observed window")
     scenario = build(cfg.scenario)
     return scenario, build(cfg.gradients), settings(cfg, scenario)
 

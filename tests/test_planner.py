@@ -242,6 +242,9 @@ def test_oracle_outside_the_reactive_closed_loop_is_one_line_error():
     oracle = source("oracle")
     with pytest.raises(UserError, match="only the planner's closed loop with world=reactive"):
         oracle.values(np.zeros((8, 5, 2)), np.zeros((1, 8, 2)))
+    for pair in (["gradients=teacher", "predictor=oracle"], ["gradients=oracle", "predictor=cv"]):
+        with pytest.raises(UserError, match="gradients=oracle and predictor=oracle go only together"):
+            make("two_lane", pair)
     cfg = planner_config("two_lane", ["gradients=oracle", "world=predictor"])
     with pytest.raises(UserError, match="gradients=oracle predicts with the world's own drivers; it needs world=reactive"):
         drive(cfg, *setup(cfg), "admm")
