@@ -10,9 +10,9 @@ from test_configs import drift
 
 from core.jobs import CONF_DIR, UserError
 from core.rollout import ego_xy
+from data.world import steer_to
 from distill import models as distill_models
 from planner import admm, cli, cost, dynamics, mpc
-from data.world import steer_to
 from planner.closed_loop import backfill
 from planner.gradients import Autodiff, CentralDifferences
 from planner.qp import QP
