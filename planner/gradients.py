@@ -141,10 +141,6 @@ class WorldModel:
                 out[b, k] = w.positions
         return out
 
-    def phi(self, window):
-        """No one-step map: the oracle is a world, not a function of the window."""
-        raise UserError("predictor=oracle has no one-step map; use it as gradients=oracle")
-
 
 class WorldOracle(CentralDifferences):
     """gradients=oracle: the WorldModel's futures, derivatives by central differences of them (step h, m)."""

@@ -60,6 +60,8 @@ def setup(cfg: DictConfig):
     if (cfg.gradients._target_ == ORACLE[0]) != (cfg.gradients.predictor._target_ == ORACLE[1]):
         raise UserError("gradients=oracle and predictor=oracle go only together: the oracle is the running world, "
                         "not a map of the observed window")
+    if cfg.gradients._target_ == ORACLE[0] and cfg.world != "reactive":
+        raise UserError("gradients=oracle predicts with the world's own drivers; it needs world=reactive")
     scenario = build(cfg.scenario)
     return scenario, build(cfg.gradients), settings(cfg, scenario)
 

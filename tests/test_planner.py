@@ -8,9 +8,9 @@ import pytest
 from scipy import sparse
 from test_configs import drift
 
+from bench.branches import ego_controls, execute
 from core.jobs import CONF_DIR, UserError
 from core.rollout import ego_xy
-from data.world import steer_to
 from distill import models as distill_models
 from planner import admm, cli, cost, dynamics, mpc
 from planner.closed_loop import backfill
@@ -221,12 +221,9 @@ def test_oracle_replays_the_worlds_own_response_and_leaves_the_world_untouched()
     scenario, oracle, _ = make("two_lane", ["gradients=oracle"])
 
     def nudge(world, y, steps):
-        """A deep copy of `world` driven `steps` with the ego steering to y (m) at constant speed: xy after each step."""
-        world, xy = copy.deepcopy(world), []
-        for _ in range(steps):
-            world.step(np.array([steer_to(world.z[0], y, world.params), 0.0]))
-            xy.append(world.positions)
-        return np.array(xy), world
+        """execute() of the ego steering to y (m) at constant speed for `steps` in a deep copy of `world`."""
+        z0 = world.z[0]
+        return execute(world, ego_controls(z0, np.full(steps, y), z0[3], world.params, k_y=0.6, a_bounds=(0.0, 0.0)))
 
     world = nudge(scenario.make_world(0), 2.5, 5)[1]  # the ego leaning into the cooperative car's lane
     z, t = world.z.copy(), world.t
