@@ -9,7 +9,6 @@ the others drive by their own models. The true response of the others is B - A.
 World seeds are `seed_offset + k`, k = 0, 1, ...; the dataset's episodes use uniform 32-bit seeds from
 np.random.SeedSequence(dataset.seed) (`data.dataset.episode_seeds`), which the job checks are disjoint from these.
 """
-import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,8 +17,9 @@ from core.jobs import UserError
 from core.rollout import T_OBS
 from data import bicycle
 from data.dataset import can_interact, episode_seeds, explore
-from data.world import World, steer_to
-from planner.closed_loop import backfill
+from data.perception import observe
+from data.protocol import World
+from data.world import steer_to
 
 KINDS = ("push", "speed", "timing")  # back off / push on, slow down / speed up, early / late push
 
@@ -31,9 +31,10 @@ class Pair:
     seed: int  # world seed
     step: int  # steps driven before branching
     kind: str  # one of KINDS
-    history: np.ndarray  # (T_obs, SLOTS, 2) what a planner observes at the branch state
+    history: np.ndarray  # (T_obs, n_slots+1, 2) what a planner observes at the branch state (data.perception)
+    ids: np.ndarray  # (n_slots+1,) the world ids of its slots, ego first
     controls: np.ndarray  # (2, T_p, 2) the ego's [delta (rad), a (m/s^2)] under plan A and B
-    xy: np.ndarray  # (2, T_p, SLOTS, 2) every car's xy after each step under plan A and B, ego in slot 0
+    xy: np.ndarray  # (2, T_p, n_slots+1, 2) the slots' xy after each step under plan A and B, ego in slot 0
     world: World  # the branch state, for re-drawn counterfactuals
 
     @property
@@ -47,22 +48,15 @@ class Pair:
         return self.xy[1, :, 1:] - self.xy[0, :, 1:]
 
 
-def execute(world: World, controls):
-    """Drive a deep copy of `world` with the ego's controls (T_p, 2): xy (T_p, SLOTS, 2) after each step, and the copy."""
-    world = copy.deepcopy(world)
+def execute(world: World, controls, ids=None):
+    """Drive a copy of `world` with the ego's controls (T_p, 2): xy (T_p, len(ids), 2) of cars `ids` (default every car)
+    after each step, and the copy."""
+    world = world.copy()
     xy = []
     for u in controls:
         world.step(u)
-        xy.append(world.positions)
+        xy.append(world.states()[slice(None) if ids is None else ids, :2])
     return np.array(xy), world
-
-
-def redraw(world: World, rng: np.random.Generator) -> World:
-    """A copy of `world` whose latched decisions to yield are re-drawn from their prior, Bernoulli(eta_coop) per driver;
-    drivers, states and their current responses are kept."""
-    world = copy.deepcopy(world)
-    world.will_yield = np.concatenate([[False], rng.random(len(world.drivers)) < [d.eta_coop for d in world.drivers]])
-    return world
 
 
 def ego_controls(z0, y_targets, v_target, params: bicycle.BicycleParams, k_y, a_bounds):
@@ -81,7 +75,7 @@ def ego_controls(z0, y_targets, v_target, params: bicycle.BicycleParams, k_y, a_
 def plan_pair(world: World, kind: str, y_ref: float, T_p: int, rng: np.random.Generator, plans) -> np.ndarray:
     """The ego's controls (2, T_p, 2) of a pair of `kind`; `plans` holds y_push (fraction of y_ref), dv (m/s),
     delay (steps) ranges and the ego's k_y, a_bounds."""
-    z0 = world.z[0]
+    z0 = world.states()[0]
     y0, v0 = float(z0[1]), float(z0[3])
     own = world.road.centre(world.road.lane_of(y0))
     y_push = float(rng.uniform(*plans.y_push)) * y_ref
@@ -97,19 +91,16 @@ def plan_pair(world: World, kind: str, y_ref: float, T_p: int, rng: np.random.Ge
     return np.stack([ego_controls(z0, y, v, world.params, plans.k_y, tuple(plans.a_bounds)) for y, v in targets])
 
 
-def branch_state(scenario, policy_ranges, seed: int, branch, rng: np.random.Generator):
-    """(steps driven, world, history (T_obs, SLOTS, 2)) at a random reachable step of seed's exploratory episode, or None.
-
-    The history is the planner's observation (planner.closed_loop.drive): back-filled at constant velocity before t = 0.
-    """
+def branch_state(scenario, policy_ranges, seed: int, branch, rng: np.random.Generator, n_slots: int):
+    """(steps driven, world, what the planner sees there: data.perception.Seen) at a random reachable step of seed's
+    exploratory episode, or None."""
     candidates = range(branch.min_steps, branch.max_steps + 1)
-    states, _, _, copies, _ = explore(scenario, policy_ranges, seed, branch.max_steps + 1, set(candidates))
+    _, _, _, copies, _ = explore(scenario, policy_ranges, seed, branch.max_steps + 1, set(candidates))
     ok = [k for k, w in sorted(copies.items()) if can_interact(w, scenario, branch.reach)]
     if not ok:
         return None
     k = int(rng.choice(ok))
-    past = np.concatenate([backfill(states[0], T_OBS, scenario.params.dt), states[1 : k + 1, :, :2]])
-    return k, copies[k], past[-T_OBS:]
+    return k, copies[k], observe(copies[k], n_slots, T_OBS)
 
 
 def heldout_seeds(key: str, start: int, count: int, dataset) -> range:
@@ -126,20 +117,20 @@ def heldout_seeds(key: str, start: int, count: int, dataset) -> range:
 def make_pairs(scenario, policy_ranges, cfg) -> list[Pair]:
     """cfg.states branch states from held-out seeds, one pair of every kind in cfg.plans.kinds from each.
 
-    cfg: seed_offset, states, T_p, branch (min_steps, max_steps, reach, tries per state), plans, dataset (seed, episodes).
+    cfg: seed_offset, states, n_slots, T_p, branch (min_steps, max_steps, reach, tries per state), plans, dataset (seed, episodes).
     """
     seeds = heldout_seeds("seed_offset", cfg.seed_offset, cfg.states * cfg.branch.tries, cfg.dataset)
     pairs, found = [], 0
     for seed in seeds:
         rng = np.random.default_rng([seed, 3])  # the dataset draws from [seed, 1] and [seed, 2]
-        state = branch_state(scenario, policy_ranges, seed, cfg.branch, rng)
+        state = branch_state(scenario, policy_ranges, seed, cfg.branch, rng, cfg.n_slots)
         if state is None:
             continue
-        k, world, history = state
+        k, world, seen = state
         for kind in cfg.plans.kinds:
             controls = plan_pair(world, kind, scenario.y_ref, cfg.T_p, rng, cfg.plans)
-            xy = np.stack([execute(world, u)[0] for u in controls])
-            pairs.append(Pair(seed, k, kind, history, controls, xy, world))
+            xy = np.stack([execute(world, u, seen.ids)[0] for u in controls])
+            pairs.append(Pair(seed, k, kind, seen.history, seen.ids, controls, xy, world))
         found += 1
         if found == cfg.states:
             return pairs

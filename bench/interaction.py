@@ -27,18 +27,20 @@ import numpy as np
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from bench.branches import KINDS, Pair, execute, make_pairs, redraw
+from bench.branches import KINDS, Pair, execute, make_pairs
 from core import validate
 from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+from core.stats import bootstrap
+from planner.gradients import available
 
 log = logging.getLogger(__name__)
 
 REFERENCE = "reference"
-SOURCES = ("teacher", "student", "surrogate", "analytic", "cv")
+SOURCES = available(needs_world=False)  # conf/gradients/ but the oracle: it reads the planner's running world
 POS = validate.Real(0, lo_open=True)
 SCHEMA = {
     "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE))), "models_dir": validate.Text(),
-    "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "T_p": validate.Int(1),
+    "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "n_slots": validate.Int(1), "T_p": validate.Int(1),
     "branch.min_steps": validate.Int(0), "branch.max_steps": validate.Int(0), "branch.reach": POS,
     "branch.tries": validate.Int(1), "plans.kinds": validate.ListOf(validate.OneOf(KINDS)),
     "plans.y_push": validate.Range(0), "plans.dv": validate.Range(0), "plans.delay": validate.ListOf(validate.Int(0), 2),
@@ -73,8 +75,8 @@ def reference_response(pair: Pair, draws: int, rng: np.random.Generator):
     plans of a draw share its decisions."""
     out = []
     for _ in range(draws):
-        world = redraw(pair.world, rng)
-        a, b = (execute(world, u)[0] for u in pair.controls)
+        world = pair.world.redrawn(rng)
+        a, b = (execute(world, u, pair.ids)[0] for u in pair.controls)
         out.append(b[:, 1:] - a[:, 1:])
     return np.mean(out, axis=0)
 
@@ -107,12 +109,7 @@ def intervals(pred, true, states, resamples: int, suffix: str = "", seed: int = 
     (P, T_p, N, 2), resampling branch states: the pairs of one state (states: (P,) labels) share its world, so they are
     drawn together. Real responses are rare (about 6% of pairs), so the scores move by tenths between state sets."""
     members = [np.flatnonzero(states == k) for k in np.unique(states)]
-    rng = np.random.default_rng(seed)
-    draws = []
-    for _ in range(resamples):
-        idx = np.concatenate([members[i] for i in rng.integers(len(members), size=len(members))])
-        draws.append(corr_gain(pred[idx], true[idx]))
-    lo, hi = np.nanpercentile(np.array(draws), [2.5, 97.5], axis=0)
+    lo, hi = bootstrap(members, lambda idx: corr_gain(pred[idx], true[idx]), resamples, seed, within=False)
     return {f"react_corr{suffix}_lo": lo[0], f"react_corr{suffix}_hi": hi[0], f"react_gain{suffix}_lo": lo[1],
             f"react_gain{suffix}_hi": hi[1]}
 

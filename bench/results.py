@@ -29,12 +29,13 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
 from bench.branches import heldout_seeds
+from core import stats, validate
 from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
 from planner.batch import progress
-from planner.report import mean_ci, wilson
+from planner.gradients import available, reads_models
 
 log = logging.getLogger(__name__)
-TRAINED = ("teacher", "student", "surrogate", "fd")  # gradient sources that read trained models (per training seed)
+TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
 METHODS = ("admm", "nnmpc")
 MODELS = ("cv", "teacher", "student")  # predictors of the accuracy table; cv from the cv_* metrics of the teacher's runs
 
@@ -140,36 +141,10 @@ def read_episodes(folder: Path, method: str) -> list[dict]:
                 if r["crash"] == "0"]
 
 
-def bootstrap(groups, resamples: int, rng) -> tuple[float, float, float]:
-    """(mean, lo, hi): the mean of the pooled finite values and its 95% percentile interval, resampling the groups
-    (trainings), then the values within each."""
-    groups = [g[np.isfinite(g)] for g in map(lambda g: np.asarray(g, float), groups)]
-    groups = [g for g in groups if len(g)]
-    if not groups:
-        return (float("nan"),) * 3
-    mean = float(np.concatenate(groups).mean())
-    if sum(map(len, groups)) == 1:
-        return mean, mean, mean
-    stats = np.empty(resamples)
-    for b in range(resamples):
-        pick = rng.integers(len(groups), size=len(groups))
-        stats[b] = np.concatenate([groups[i][rng.integers(len(groups[i]), size=len(groups[i]))] for i in pick]).mean()
-    lo, hi = np.percentile(stats, [2.5, 97.5])
-    return mean, float(lo), float(hi)
-
-
 def outcomes(per_training: list[list[dict]], resamples: int, rng) -> dict:
     """One table row from the episodes of each training: rates with Wilson intervals, means with bootstrap intervals."""
     eps = [e for t in per_training for e in t]
-    n = len(eps)
-    row = {"trainings": len(per_training), "episodes": n}
-    for k in ("merged", "collision"):
-        hits = sum(e[k] for e in eps)
-        row[k] = hits / n if n else float("nan")
-        row[f"{k}_lo"], row[f"{k}_hi"] = wilson(hits, n)
-    for k in ("t_merge", "C_max", "fallbacks"):
-        groups = [[e[k] for e in t if k != "t_merge" or e["merged"]] for t in per_training]
-        row[k], row[f"{k}_lo"], row[f"{k}_hi"] = bootstrap(groups, resamples, rng)
+    row = {"trainings": len(per_training), "episodes": len(eps), **stats.outcomes(per_training, resamples, rng)}
     row["d_min_m"] = min((e["d_min_m"] for e in eps), default=float("nan"))
     row["step_ms_median"] = float(np.median([e["step_ms_median"] for e in eps])) if eps else float("nan")
     return row
@@ -191,7 +166,7 @@ def markdown(header, rows) -> list[str]:
 
 def over_trainings(values: list[dict], keys) -> dict:
     """{key: (mean, lo, hi)} over the trainings' dicts (t interval)."""
-    return {k: mean_ci([v.get(k, np.nan) for v in values]) for k in keys}
+    return {k: stats.mean_ci([v.get(k, np.nan) for v in values]) for k in keys}
 
 
 def batch_rows(cfg, batches, scenario, sources, rng) -> dict:
@@ -336,6 +311,7 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
 @guarded
 def run(cfg: DictConfig) -> Path:
     """Run the preset's jobs, write the report, log it (experiment `results`); returns the Markdown's path."""
+    validate.check(cfg, "results")
     dest = writable(Path(cfg.out_dir), "out_dir")
     work = writable(Path(cfg.work_dir), "work_dir")
     plan, batches = build_plan(cfg, work)

@@ -1,9 +1,9 @@
 """A fixed set of planning states for benchmarks: the (observation, warm start) pairs that MPC steps saw in closed-loop
 ADMM runs of both scenarios, saved once to an .npz so every benchmark (and every solver) plans from the same states.
 
-    from bench.states import planning_states, settings
+    from bench.states import planning_states, settings, solver_step
     for st in planning_states():                       # collected on first use, then loaded from the .npz
-        result = mpc.mpc_step(settings(st.scenario), st.obs, source, st.warm)
+        result = solver_step()(settings(st.scenario), st.obs, source, st.warm)
 """
 from functools import lru_cache
 from pathlib import Path
@@ -36,16 +36,24 @@ def settings(scenario: str, overrides: tuple = ()) -> mpc.Settings:
     return mpc_settings(cfg, build(cfg.scenario))
 
 
+@lru_cache(maxsize=None)
+def solver_step(overrides: tuple = ()):
+    """The step the `planner` command's solver would run with these overrides (conf/solver/; by default
+    planner.mpc.mpc_step with the Z-step bound), called as step(settings(scenario), obs, source, warm); the same on every
+    scenario (conf/solver/ and conf/zstep/ read no scenario value)."""
+    return build(planner_config("two_lane", overrides).solver.step)
+
+
 def collect(scenarios=SCENARIOS, per_scenario=15, gradients="analytic", seed=0, overrides=()) -> list[PlanningState]:
     """Drive each scenario closed loop with ADMM and `gradients`, keep `per_scenario` steps evenly spread over the run."""
     out = []
     for name in scenarios:
         cfg = planner_config(name, [f"gradients={gradients}", f"seed={seed}", "method=admm", *overrides])
         scenario, source, s = setup(cfg)
-        seen = []
-        step = lambda obs, warm: seen.append((obs, warm)) or mpc.mpc_step(s, obs, source, warm)
+        seen, admm_step = [], build(cfg.solver.step)
+        step = lambda obs, warm: seen.append((obs, warm)) or admm_step(s, obs, source, warm)
         closed_loop.drive(scenario.make_world(cfg.seed), step, source, scenario.x_ref, scenario.target_lane, cfg.T_obs,
-                          cfg.max_steps, cfg.world)
+                          cfg.max_steps, cfg.world, cfg.n_slots)
         keep = np.unique(np.linspace(0, len(seen) - 1, min(per_scenario, len(seen))).round().astype(int))
         out += [PlanningState(name, *seen[k]) for k in keep]
     return out

@@ -21,24 +21,23 @@ import numpy as np
 from omegaconf import DictConfig
 from threadpoolctl import threadpool_limits
 
-from bench.states import planning_states, settings
+from bench.states import planning_states, settings, solver_step
+from core import validate
 from core.jobs import CONF_DIR, UserError, guarded, mlflow_run
 from core.rollout import ego_xy
 from planner import mpc
+from planner.gradients import Source, available, source_class
 from planner.setup import build, make, planner_config
 
 log = logging.getLogger(__name__)
-RATIOS = (("teacher", "surrogate"), ("teacher", "student"), ("surrogate", "floor"), ("student", "floor"))
-IPOPT = ("cv", "analytic", "student")  # the predictors planner.ipopt writes as CasADi expressions
 GAP_FLOOR = 1e-3  # J below which a relative cost gap means nothing (the plan is at the references)
 
 
-class Frozen:
+class Frozen(Source):
     """The QP floor's source: rollout values affine in the ego plan about one linearisation, Jacobian fixed (m, m/m)."""
 
-    name = "floor"
-
     def __init__(self, values, grads, ego):
+        super().__init__("floor", None)
         self.values0, self.grads, self.ego0 = values, grads, ego
 
     def values(self, history, ego_futures):
@@ -76,14 +75,15 @@ def source(gradients, models_dir, *overrides):
 
 
 def sources(models_dir) -> dict:
-    """Every gradient source available: teacher (autodiff), student, surrogate, fd over the trained models; over the
-    analytic predictor (with its exact Jacobians as `analytic`) for the ones whose models are missing."""
+    """Every gradient source that runs outside the closed loop (conf/gradients/, the oracle not), over the trained
+    models; the ones that differentiate any predictor (teacher autodiff, fd) over the analytic predictor (with its exact
+    Jacobians as `analytic`) where the models are missing, the others then skipped."""
     out = {}
-    for name in ("teacher", "student", "surrogate", "fd", "analytic", "cv"):
+    for name in available(needs_world=False):
         try:
             out[name] = source(name, models_dir)  # onnxruntime sessions run on one thread already
         except UserError as e:
-            if name in ("teacher", "fd"):  # the same maths over the built-in predictor keeps the ratios meaningful
+            if source_class(name).differentiates:  # the same maths over the built-in predictor keeps the ratios meaningful
                 out[name] = source(name, models_dir, "predictor=analytic")
             log.info(f"{name}: {e}" + ("; using the analytic predictor" if name in out else "; skipped"))
     if "analytic" in out and out["teacher"].predictor.name != "analytic":
@@ -91,9 +91,9 @@ def sources(models_dir) -> dict:
     return out
 
 
-def ipopt_steps(srcs: dict) -> dict:
-    """{ipopt-<name>: (step, source)}: solver=ipopt's step (conf/solver/ipopt.yaml) for each source in IPOPT; none
-    without CasADi."""
+def ipopt_steps(srcs: dict, names) -> dict:
+    """{ipopt-<name>: (step, source)}: solver=ipopt's step (conf/solver/ipopt.yaml) for each source of `names` present;
+    none without CasADi."""
     try:
         from planner.ipopt import import_casadi
 
@@ -102,7 +102,7 @@ def ipopt_steps(srcs: dict) -> dict:
         log.info(f"ipopt: {e}; skipped")
         return {}
     step = build(planner_config("two_lane", ["solver=ipopt"]).solver.step)
-    return {f"ipopt-{name}": (step, srcs[name]) for name in IPOPT if name in srcs}
+    return {f"ipopt-{name}": (step, srcs[name]) for name in names if name in srcs}
 
 
 def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> dict:
@@ -115,8 +115,8 @@ def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> 
     falls = {name: 0 for name in ms}
     for state in states:
         s = settings(state.scenario)
-        per_state = {name: (mpc.mpc_step, src) for name, src in srcs.items()}
-        per_state.update({"floor": (mpc.mpc_step, freeze(reference, s, state)), **(others or {})})
+        per_state = {name: (solver_step(), src) for name, src in srcs.items()}
+        per_state.update({"floor": (solver_step(), freeze(reference, s, state)), **(others or {})})
         for name, (step, src) in per_state.items():
             best = np.inf
             for _ in range(repeats):
@@ -178,16 +178,17 @@ def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
     return "\n".join(lines)
 
 
-def summary(timings: dict) -> dict:
-    """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_iters_mean, <source>_fallbacks and the ratios."""
+def summary(timings: dict, st: DictConfig) -> dict:
+    """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_iters_mean, <source>_fallbacks and the ratios of
+    st.ratios and st.ipopt (cfg.step_time)."""
     out = {}
     for name, (ms, iters, falls, _) in timings.items():
         out.update({f"{name}_ms_median": float(np.median(ms)), f"{name}_ms_p95": float(np.percentile(ms, 95)),
                     f"{name}_iters_mean": iters, f"{name}_fallbacks": float(falls)})
-    for a, b in RATIOS:
+    for a, b in st.ratios:
         if a in timings and b in timings:
             out[f"ratio_{a}_{b}"] = out[f"{a}_ms_median"] / out[f"{b}_ms_median"]
-    for name in IPOPT:
+    for name in st.ipopt:
         if f"ipopt-{name}" in timings:
             gap = cost_gap(timings[name][3], timings[f"ipopt-{name}"][3])
             out[f"ratio_ipopt_{name}"] = out[f"ipopt-{name}_ms_median"] / out[f"{name}_ms_median"]
@@ -196,19 +197,19 @@ def summary(timings: dict) -> dict:
     return out
 
 
-def table(timings: dict, srcs: dict, metrics: dict, repeats: int, states) -> str:
-    """The printed result: one line per source (and the floor), then the ratios."""
-    lines = [f"{len(states)} planning states ({', '.join(sorted({st.scenario for st in states}))}), one thread, "
-             f"fastest of {repeats}",
+def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> str:
+    """The printed result: one line per source (and the floor), then the ratios of st.ratios and st.ipopt."""
+    lines = [f"{len(states)} planning states ({', '.join(sorted({state.scenario for state in states}))}), one thread, "
+             f"fastest of {st.repeats}",
              f"{'source':>14} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
         pred = srcs[name.removeprefix("ipopt-")].predictor.name if name.removeprefix("ipopt-") in srcs else "frozen"
         lines.append(f"{name:>14} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
-    for a, b in RATIOS:
+    for a, b in st.ratios:
         key = f"ratio_{a}_{b}"
         lines.append(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
-    for name in IPOPT:
+    for name in st.ipopt:
         if f"ratio_ipopt_{name}" in metrics:
             m = lambda k: metrics[k.format(name)]
             lines.append(f"ADMM vs IPOPT, {name}: {m('{}_ms_median'):.1f} vs {m('ipopt-{}_ms_median'):.1f} ms median, "
@@ -229,21 +230,22 @@ def single_threaded(cfg: DictConfig):
 @guarded
 def run(cfg: DictConfig) -> dict:
     """Collect or load the states, time every source and the floor, log the table and the ratios and to MLflow."""
+    validate.check(cfg, "bench")
     with single_threaded(cfg):
         states = planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario, gradients=cfg.states.gradients,
                                  seed=cfg.states.seed)
         srcs = sources(cfg.models_dir)
-        others = ipopt_steps(srcs)
+        others = ipopt_steps(srcs, cfg.step_time.ipopt)
         # warm-up: first calls pay for imports, allocations, onnxruntime's graph setup and building the IPOPT NLPs
-        for step, src in [(mpc.mpc_step, src) for src in srcs.values()] + list(others.values()):
+        for step, src in [(solver_step(), src) for src in srcs.values()] + list(others.values()):
             for scenario in sorted({st.scenario for st in states}):
                 st = next(st for st in states if st.scenario == scenario)
                 step(settings(scenario), st.obs, src, st.warm)
         timings = time_steps(srcs, states, cfg.step_time.repeats, others)
-        profiles = {name: profile(mpc.mpc_step, srcs[name], settings, states) for name in cfg.step_time.profile
+        profiles = {name: profile(solver_step(), srcs[name], settings, states) for name in cfg.step_time.profile
                     if name in srcs}
-    metrics = summary(timings)
-    log.info("\n%s", table(timings, srcs, metrics, cfg.step_time.repeats, states))
+    metrics = summary(timings, cfg.step_time)
+    log.info("\n%s", table(timings, srcs, metrics, states, cfg.step_time))
     for name, (ms, calls) in profiles.items():
         log.info("\n%s", profile_table(name, ms, calls))
         metrics.update({profile_key(name, k): v for k, v in {**ms, **calls}.items()})

@@ -13,7 +13,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from bench.states import planning_states, settings
+from bench.states import planning_states, settings, solver_step
 from bench.step_time import log_bench, single_threaded, sources
 from core.jobs import CONF_DIR, guarded
 from core.rollout import b_i, ego_xy
@@ -43,10 +43,11 @@ def violation(s: mpc.Settings, state, source, plan):
     return float(max(0.0, -b_i(values, s.R).min(initial=np.inf)))
 
 
-def step(s: mpc.Settings, state, source):
-    """One MPC step: (ms, J, violation m^2, fell back, the Z-step's last stop reason)."""
+def step(state, source, zstep: str):
+    """One MPC step with Z-step `zstep`: (ms, J, violation m^2, fell back, the Z-step's last stop reason)."""
+    s, admm_step = settings(state.scenario, (f"zstep={zstep}",)), solver_step((f"zstep={zstep}",))
     t0 = time.perf_counter()
-    result = mpc.mpc_step(s, state.obs, source, state.warm)
+    result = admm_step(s, state.obs, source, state.warm)
     ms = 1e3 * (time.perf_counter() - t0)
     return ms, result.J, violation(s, state, source, result.plan), bool(result.fallback), result.zstop
 
@@ -57,7 +58,7 @@ def compare(srcs: dict, states) -> dict:
     for state in states:
         for name, src in srcs.items():
             for z in ZSTEPS:
-                out[name, z].append(step(settings(state.scenario, (f"zstep={z}",)), state, src))
+                out[name, z].append(step(state, src, z))
     return {k: {"ms": np.array([r[0] for r in v]), "J": np.array([r[1] for r in v]), "viol": np.array([r[2] for r in v]),
                 "fallback": np.array([r[3] for r in v]), "stops": [r[4] for r in v]} for k, v in out.items()}
 
@@ -105,7 +106,7 @@ def run(cfg: DictConfig) -> dict:
                                         gradients=cfg.states.gradients, seed=cfg.states.seed), cfg.zstep_compare.per_scenario)
         srcs = {n: s for n, s in sources(cfg.models_dir).items() if not only or n in only}
         for src in srcs.values():  # warm-up: first calls pay for imports and allocations (PyGranso's import is done)
-            step(settings(states[0].scenario, ("zstep=sqp",)), states[0], src)
+            step(states[0], src, "sqp")
         rows = compare(srcs, states)
     metrics = summary(rows)
     log.info("\n%s planning states (%s), one thread\n%s", len(states), ", ".join(sorted({st.scenario for st in states})),

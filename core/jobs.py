@@ -15,13 +15,17 @@ DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")  # Hydra configs live beside the packages (editable install)
 
 
+def options(group: str) -> list[str]:
+    """The options of config group `group` (conf/<group>/*.yaml), sorted; none for a folder that does not exist."""
+    return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+
+
 def job_groups(choices) -> str:
     """--help's list of a job's config groups: each group of its defaults list with its options and the chosen one."""
     lines = []
     for group, chosen in choices.items():
         if not group.startswith("hydra/") and chosen is not None:
-            options = sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
-            lines.append(f"{group}: {' | '.join(options)}  (now {chosen})")
+            lines.append(f"{group}: {' | '.join(options(group))}  (now {chosen})")
     return "\n".join(lines) or "none: every setting is a key below"
 
 

@@ -5,10 +5,11 @@ maps a dotted key to a rule; a rule's `optional` lets the key be absent (keys on
 """
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from core.jobs import UserError
+from core.jobs import CONF_DIR, UserError, options
 
 SEED_MAX = 2**32 - 1  # numpy and Lightning seeds are unsigned 32-bit
 
@@ -127,18 +128,21 @@ class Range:
 
 @dataclass(frozen=True)
 class ListOf:
-    """A list of values each obeying `item`, `length` long if given."""
+    """A list of values each obeying `item`, `length` long if given, at least `at_least` long."""
 
     item: object
     length: int | None = None
+    at_least: int = 0
     optional: bool = False
     nullable: bool = False
 
     def ok(self, v):
-        return isinstance(v, list) and (self.length is None or len(v) == self.length) and all(self.item.ok(x) for x in v)
+        return isinstance(v, list) and (self.length is None or len(v) == self.length) and len(v) >= self.at_least \
+            and all(self.item.ok(x) for x in v)
 
     def allowed(self):
-        return f"a list{f' of {self.length}' if self.length else ''}, each {self.item.allowed()}"
+        size = f" of {self.length}" if self.length else f" of at least {self.at_least}" if self.at_least else ""
+        return f"a list{size}, each {self.item.allowed()}"
 
 
 @dataclass(frozen=True)
@@ -212,19 +216,27 @@ SEED = Int(0, SEED_MAX)
 N_JOBS = Int(-1, but=(0,))  # joblib: -1 every core, never 0
 PAIR = Range(strict=True)
 COST = ("lambda_div", "lambda_v", "lambda_delta", "lambda_a", "lambda_ddelta", "lambda_da")
+# the predictors that load a trained model of their own from models_dir (conf/predictor/): the ones `distill` trains
+TRAINED_PREDICTORS = tuple(n for n in options("predictor")
+                           if "${models_dir}" in OmegaConf.to_yaml(OmegaConf.load(Path(CONF_DIR) / "predictor" / f"{n}.yaml")))
 
 PAPER = {  # conf/paper/table1.yaml, shared by distill, surrogate and planner
     "paper.T_p": Int(1), "paper.rho": POS, **{f"paper.cost.{k}": NONNEG for k in COST},
     "paper.safety.r": POS, "paper.safety.r_i": POS, "paper.safety.eps": NONNEG, "paper.lambda_s": NONNEG,
 }
 
+SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every scenario shares, the dense stream's promise
+    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.x_ref": Real(), "scenario.followers": Int(1, optional=True),
+    "scenario.min_behind_s": Real(0, optional=True),
+}
+
 DATASET = {
-    "dataset.name": Text(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2),
+    "dataset.name": Text(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2), "dataset.n_slots": Int(1),
     "dataset.seed": SEED, "dataset.split": Fractions(3), "dataset.n_jobs": N_JOBS,
 }
 
 MAKE_DATASET = {
-    **DATASET, **PAPER, "out_dir": Text(), "plot_episodes": Int(0),
+    **DATASET, **PAPER, **SCENARIO, "out_dir": Text(), "plot_episodes": Int(0),
     **{f"dataset.policy.{k}": PROB for k in ("p_keep_lane", "p_reckless")},
     **{f"dataset.policy.{k}": Range(0) for k in ("t_start", "y_nudge", "hold", "retry_after", "need_dx", "v_change_t",
                                                   "align_gain")},
@@ -258,32 +270,30 @@ DISTILL = {
 }
 
 SURROGATE = {
-    **PAPER, "source": OneOf(("teacher", "student")), "jacobian": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
+    **PAPER, "source": OneOf(TRAINED_PREDICTORS), "jacobian": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
     "dataset_dir": Text(), "models_dir": Text(), "seed": SEED,
     **{f"data.{k}": Int(1) for k in ("dataset_windows", "plan_states", "val_dataset_windows", "val_plan_states",
                                      "test_plan_states", "batch_size")},
     "network.hidden": Int(1), "network.depth": Int(1), "network.absolute": OneOf(("", "y", "xy")),
     "module.lr": POS, "module.weight_decay": NONNEG,
     "trainer.max_epochs": Int(1), "trainer.devices": Int(1), "trainer.log_every_n_steps": Int(1),
-    "timing.repeats": Int(1), "timing.budget_s": POS, "timing.predictors": ListOf(OneOf(("teacher", "student"))),
+    "timing.repeats": Int(1), "timing.budget_s": POS, "timing.predictors": ListOf(OneOf(TRAINED_PREDICTORS)),
     "states.T_p": Int(1), "states.shift_x": NONNEG, "states.shift_y": NONNEG, "states.p_shift": PROB,
     "states.p_mid_lane_change": PROB, "states.lane_width": POS, "states.plan_y": Real(), "states.speed_factor": Range(0),
     "states.jitter": NONNEG, "states.p_jitter": PROB,
 }
 
 PLANNER = {  # the keys of a group option other options lack are optional (zstep, gradients, method, predictor)
-    **PAPER, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
+    **PAPER, **SCENARIO, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
     "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
-    "T_obs": Int(2), "merge_tol": POS, "plots": Bool(),
+    "T_obs": Int(2, 21), "n_slots": Int(1), "merge_tol": POS, "plots": Bool(),
     "mpc.T_p": Int(1), "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
     "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
     "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
     "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),
-    "mpc.osqp.adaptive_rho_interval": Int(0, optional=True), "mpc.box_qp": OneOf(("closed_form", "osqp")),
-    "mpc.admm.balance_rho.enabled": Bool(), **{f"mpc.admm.balance_rho.{k}": Real(1, lo_open=True) for k in ("mu", "tau")},
-    **{f"mpc.admm.balance_rho.{k}": POS for k in ("rho_min", "rho_max")},
-    "zstep.settings.reuse_radius": Real(0, optional=True), "gradients.rollout": Bool(optional=True),
+    "mpc.osqp.adaptive_rho_interval": Int(0, optional=True),
+    "zstep.settings.reuse_radius": Real(0, optional=True),
     "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
     "mpc.check_relative": Bool(),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
@@ -299,4 +309,40 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "predictor.slowdown": Real(0, optional=True),
 }
 
-SCHEMAS = {"make_dataset": MAKE_DATASET, "distill": DISTILL, "surrogate": SURROGATE, "planner": PLANNER}
+GRADIENT_OPTIONS = OneOf(tuple(options("gradients")))  # a gradient source: an option of conf/gradients/
+OVERRIDES = ListOf(Text())  # Hydra overrides passed on to a job
+
+RESULTS = {
+    **PAPER, "out_dir": Text(), "work_dir": Text(), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")),
+    "ray.address": Text(nullable=True), "planner_seed": SEED, "bootstrap.resamples": Int(1), "bootstrap.seed": SEED,
+    "results_preset.name": Text(), "results_preset.dataset": OneOf(tuple(options("dataset"))),
+    "results_preset.training_seeds": ListOf(SEED, at_least=1),
+    **{f"results_preset.{k}": OVERRIDES for k in ("teacher", "student", "surrogate", "planner", "interaction", "showcase")},
+    "results_preset.bench": ListOf(Text(), nullable=True),
+    **{f"results_preset.{k}": ListOf(GRADIENT_OPTIONS) for k in ("sources", "table2_sources")},
+    "results_preset.scenarios": ListOf(OneOf(tuple(options("scenario")))),
+    "results_preset.episodes": Int(1), "results_preset.table2_episodes": Int(1),
+    "results_preset.interaction_sources": ListOf(OneOf((*GRADIENT_OPTIONS.choices, "reference"))),
+}
+
+COMPARE = {
+    "out_dir": Text(), "experiment": Text(), "group_by": ListOf(Text(), at_least=1),
+    "scenario": OneOf(tuple(options("scenario")), nullable=True),
+}
+
+BENCH = {
+    "models_dir": Text(), "threads": Int(1), "states.path": Text(), "states.per_scenario": Int(1),
+    "states.gradients": GRADIENT_OPTIONS, "states.seed": SEED, "step_time.repeats": Int(1),
+    "step_time.profile": ListOf(GRADIENT_OPTIONS), "zstep_compare.per_scenario": Int(0),
+    "zstep_compare.sources": ListOf(GRADIENT_OPTIONS), "step_time.ipopt": ListOf(GRADIENT_OPTIONS),
+    "step_time.ratios": ListOf(ListOf(OneOf((*GRADIENT_OPTIONS.choices, "floor")), 2)),
+}
+
+CEILING = {
+    **SCENARIO, "world": OneOf(("reactive", "predictor")), "seed": SEED, "episodes": Int(1), "n_jobs": N_JOBS,
+    "max_steps": Int(1), "merge_tol": POS, "out_dir": Text(nullable=True), "search.gaps": Int(0),
+    "search.y_lean": ListOf(POS, at_least=1), "search.clearance": ListOf(NONNEG, at_least=1), "search.settle": Int(0),
+}
+
+SCHEMAS = {"make_dataset": MAKE_DATASET, "distill": DISTILL, "surrogate": SURROGATE, "planner": PLANNER, "results": RESULTS,
+           "compare": COMPARE, "bench": BENCH, "ceiling": CEILING}

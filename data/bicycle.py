@@ -8,9 +8,9 @@ import numpy as np
 class BicycleParams:
     """Geometry and step of the bicycle: l_f, l_r axle distances from the centre of mass (m), dt step (s)."""
 
-    l_f: float = 1.2
-    l_r: float = 1.2
-    dt: float = 0.2
+    l_f: float
+    l_r: float
+    dt: float
 
 
 def slip_angle(delta, p: BicycleParams):

@@ -1,7 +1,7 @@
 """The interaction dataset: episodes of the merge world cut into (T_obs past xy of ego + N cars) -> next xy windows.
 
-Slots: 0 is the ego; 1..N are the other cars, ordered front to back by their x at the episode's start
-(a car keeps its slot for the whole episode). Coordinates are world metres: x along the road, y to the left.
+Slots: 0 is the ego; 1..N hold the N other cars nearest the ego at each window's last observed step, in id order
+(front to back at the episode's start), each with its own past: data.perception's rule, the planner's. Coordinates are world metres: x along the road, y to the left.
 Besides each episode's own run (branch 0), counterfactual branches (1, 2, ...) restart a copy of the world at a few
 random steps where the ego can interact (same drivers, same hidden decisions) and drive the ego on differently for
 T_p steps: interventional data showing how the others react to what the ego does.
@@ -17,6 +17,7 @@ import numpy as np
 from joblib import Parallel, delayed
 
 from core.jobs import UserError, atomic_dir
+from data.perception import slot_ids
 from data.policies import sample_policy
 from data.scenarios import Scenario
 from data.world import steer_to
@@ -93,11 +94,16 @@ def branch(world, ego, steps):
     return np.array(states), np.array(yielding)
 
 
-def windows(xy, yielding, t_obs: int):
-    """All (X (n, t_obs, SLOTS, 2), Y (n, SLOTS, 2), last observed step (n,), yielding at it (n, SLOTS)) of one episode."""
+def windows(xy, yielding, t_obs: int, n_slots: int):
+    """All (X (n, t_obs, n_slots+1, 2), Y (n, n_slots+1, 2), last observed step (n,), yielding at it (n, n_slots+1)) of one
+    episode's xy (T, M, 2), slots chosen at each last observed step (data.perception.slot_ids)."""
     last = np.arange(t_obs - 1, len(xy) - 1)
-    X = np.stack([xy[t - t_obs + 1 : t + 1] for t in last]) if len(last) else np.zeros((0, t_obs) + xy.shape[1:])
-    return X, xy[last + 1], last, yielding[last]
+    if not len(last):
+        return np.zeros((0, t_obs, n_slots + 1, 2)), np.zeros((0, n_slots + 1, 2)), last, np.zeros((0, n_slots + 1), bool)
+    ids = np.stack([slot_ids(xy[t], n_slots) for t in last])
+    X = np.stack([xy[t - t_obs + 1 : t + 1][:, i] for t, i in zip(last, ids)])
+    rows = np.arange(len(last))[:, None]
+    return X, xy[last + 1][rows, ids], last, yielding[last][rows, ids]
 
 
 def episode_seeds(seed: int, episodes: int):
@@ -112,7 +118,7 @@ def explore(scenario, policy_ranges, seed, steps, snapshots=()):
     return (*rollout(scenario, policy, seed, steps, snapshots), policy)
 
 
-def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs):
+def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs, n_slots):
     """One seeded episode's windows (its own run and its counterfactual branches) and what happened in it."""
     rng = np.random.default_rng([seed, 2])
     t_pred, n = branch_cfg["steps"], branch_cfg["points"]
@@ -120,12 +126,12 @@ def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs):
     states, yielding, world, copies, policy = explore(scenario, policy_ranges, seed, steps, candidates)
     eligible = [k for k, w in sorted(copies.items()) if can_interact(w, scenario, branch_cfg["reach"])]
     points = sorted(rng.choice(eligible, size=min(n, len(eligible)), replace=False).tolist()) if eligible else []
-    parts = [(*windows(states[..., :2], yielding, t_obs), 0)]
+    parts = [(*windows(states[..., :2], yielding, t_obs, n_slots), 0)]
     for b, w in ((k, copies[k]) for k in points):
         for ego in interventions(rng, w, scenario.y_ref, branch_cfg):
             s_b, y_b = branch(w, ego, t_pred)
             X, Y, last, flags = windows(np.concatenate([states[:b, :, :2], s_b[..., :2]]),
-                                        np.concatenate([yielding[:b], y_b]), t_obs)
+                                        np.concatenate([yielding[:b], y_b]), t_obs, n_slots)
             keep = last >= b  # earlier windows are the episode's own
             parts.append((X[keep], Y[keep], last[keep], flags[keep], len(parts)))
     X, Y, last, flags = (np.concatenate([p[k] for p in parts]) for k in range(4))
@@ -136,8 +142,8 @@ def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs):
     return X, Y, last, flags, branch_id, stats
 
 
-def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: int, steps: int, t_obs: int, seed: int,
-          split_fractions=(0.8, 0.1, 0.1), n_jobs: int = 1):
+def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: int, steps: int, t_obs: int, n_slots: int,
+          seed: int, split_fractions=(0.8, 0.1, 0.1), n_jobs: int = 1):
     """Roll `episodes` seeded episodes (and their branches) out and split their windows train/val/test by episode."""
     order = np.random.default_rng(seed).permutation(episodes)
     n_train = int(round(split_fractions[0] * episodes))
@@ -146,7 +152,7 @@ def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: i
     if min(len(e) for e in which.values()) == 0:
         raise UserError(f"dataset.episodes={episodes} leaves a split empty with dataset.split={list(split_fractions)}")
     results = Parallel(n_jobs=n_jobs)(
-        delayed(episode)(scenario, policy_ranges, branch_cfg, s, steps, t_obs) for s in episode_seeds(seed, episodes))
+        delayed(episode)(scenario, policy_ranges, branch_cfg, s, steps, t_obs, n_slots) for s in episode_seeds(seed, episodes))
     splits = {}
     for name, eps in which.items():
         eps = np.sort(eps)
@@ -246,11 +252,11 @@ def make(cfg_dataset, scenario, root: Path, config_yaml: str) -> dict:
     """Build and save the dataset described by `cfg_dataset`; returns meta (with build time and statistics)."""
     t0 = time.perf_counter()
     splits, stats = build(scenario, dict(cfg_dataset.policy), dict(cfg_dataset.branches), cfg_dataset.episodes, cfg_dataset.steps,
-                          cfg_dataset.T_obs, cfg_dataset.seed, tuple(cfg_dataset.split), cfg_dataset.n_jobs)
+                          cfg_dataset.T_obs, cfg_dataset.n_slots, cfg_dataset.seed, tuple(cfg_dataset.split), cfg_dataset.n_jobs)
     meta = {
         "name": cfg_dataset.name, "seed": cfg_dataset.seed, "T_obs": cfg_dataset.T_obs, "T_pred": 1,
         "N": int(splits["train"]["X"].shape[2] - 1), "dt": scenario.params.dt, "units": "m",
-        "slots": "0 = ego; 1..N = other cars front to back by x at the episode start",
+        "slots": "0 = ego; 1..N = the N other cars nearest the ego at the last observed step, in id order",
         "shapes": {"X": "(n, T_obs, N+1, 2) past xy", "Y": "(n, N+1, 2) next xy", "episode": "(n,)",
                    "step": "(n,) last observed step", "yielding": "(n, N+1) hidden: car brakes for the ego",
                    "branch": "(n,) 0 = the episode's own run, k >= 1 its k-th counterfactual branch"},

@@ -1,14 +1,15 @@
 """Merge scenarios: the ego in lane 0 must reach lane 1 before x_ref beside a dense platoon of four reactive cars."""
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from core.jobs import UserError
 from data import bicycle
 from data.drivers import IDMDriver, sample_driver
 from data.world import Road, World
 
 
-@dataclass
+@dataclass(kw_only=True)  # keyword-only: a field whose value lives in conf/scenario/ has no default and may follow one that has
 class Scenario:
     """A fixed scenario: road, the ego's start and the platoon (front to back) in lane 1, every number in SI units."""
 
@@ -20,10 +21,16 @@ class Scenario:
     platoon_x: float  # x of the platoon's front car (m)
     platoon_v: float  # initial speed of every platoon car (m/s)
     drivers: list  # per-car parameter dicts, front to back; missing keys take IDMDriver's defaults
-    gap_factor: float = 1.0  # initial bumper gaps = gap_factor x each follower's IDM equilibrium gap
-    lane_change: bool = False  # others may change lanes (MOBIL); True in three-lane scenarios
+    gap_factor: float  # initial bumper gaps = gap_factor x each follower's IDM equilibrium gap
+    lane_change: bool  # others may change lanes (MOBIL); True in three-lane scenarios
     target_lane: int = 1
-    params: bicycle.BicycleParams = field(default_factory=bicycle.BicycleParams)
+    params: bicycle.BicycleParams
+    b_max: float  # the hardest any other car can brake (m/s^2)
+    b_safe: float  # a merge is courteous when nobody brakes harder than this (m/s^2)
+
+    def __post_init__(self):
+        if self.b_safe > self.b_max:
+            raise UserError(f"scenario.b_safe={self.b_safe} exceeds scenario.b_max={self.b_max}: no car can brake that hard")
 
     @property
     def y_ref(self):
@@ -32,7 +39,7 @@ class Scenario:
 
     def sample(self, rng: np.random.Generator) -> dict:
         """What one episode starts from: road, lane changes, platoon speed, drivers, gap factor, ego start."""
-        return dict(road=self.road, lane_change=self.lane_change, platoon_v=self.platoon_v,
+        return dict(road=self.road, lane_change=self.lane_change, platoon_x=self.platoon_x, platoon_v=self.platoon_v,
                     drivers=[IDMDriver(**d) for d in self.drivers], gap_factor=self.gap_factor, ego=dict(self.ego))
 
     def make_world(self, seed: int) -> World:
@@ -40,35 +47,67 @@ class Scenario:
         rng = np.random.default_rng(seed)
         e = self.sample(rng)
         road, v, drivers, ego = e["road"], e["platoon_v"], e["drivers"], e["ego"]
-        xs = [self.platoon_x]
+        xs = [e["platoon_x"]]
         for d in drivers[1:]:
             xs.append(xs[-1] - road.car_length - e["gap_factor"] * d.equilibrium_gap(v))
         y = road.centre(self.target_lane)
         z = [[ego["x"], ego["y"], ego.get("psi", 0.0), ego["v"]]] + [[x, y, 0.0, v] for x in xs]
         will_yield = np.concatenate([[False], rng.random(len(drivers)) < [d.eta_coop for d in drivers]])
-        return World(road, np.array(z), drivers, will_yield, e["lane_change"], self.params)
+        return World(road, np.array(z), drivers, will_yield, self.b_max, self.params, lane_change=e["lane_change"])
 
 
-@dataclass
+@dataclass(kw_only=True)
 class RandomScenario(Scenario):
     """Seeded random scenarios for batch statistics and data: lanes, speeds, gaps, ego start and drivers all sampled."""
 
-    lanes_choices: tuple = (2, 3)
-    speed_range: tuple = (3.5, 5.5)  # platoon speed (m/s)
-    gap_factor_range: tuple = (0.85, 1.1)
-    ego_offset_range: tuple = (-14.0, 6.0)  # ego x relative to the platoon's front car (m)
-    ego_dv_range: tuple = (-1.0, 1.0)  # ego start speed relative to the platoon (m/s)
-    v0_factor_range: tuple = (1.3, 1.6)  # followers' desired speed / platoon speed
-    driver_ranges: dict = field(default_factory=dict)  # parameter name -> [low, high]
+    lanes_choices: tuple
+    speed_range: tuple  # platoon speed (m/s)
+    gap_factor_range: tuple
+    ego_offset_range: tuple  # ego x relative to the platoon's front car (m)
+    ego_dv_range: tuple  # ego start speed relative to the platoon (m/s)
+    v0_factor_range: tuple  # followers' desired speed / platoon speed
+    driver_ranges: dict  # parameter name -> [low, high]
+    followers: int  # cars behind the platoon's front car
 
-    def sample(self, rng):
-        """Draw lanes, speed, drivers and ego start; the front car's desired speed sets the platoon's pace."""
+    def stream(self, rng):
+        """(lanes, platoon speed (m/s), drivers front to back): the front car's desired speed sets the platoon's pace."""
         lanes = int(rng.choice(self.lanes_choices))
         v = float(rng.uniform(*self.speed_range))
         drivers = [sample_driver(rng, self.driver_ranges, v0=v)]
-        drivers += [sample_driver(rng, self.driver_ranges, v0=v * rng.uniform(*self.v0_factor_range)) for _ in range(3)]
+        drivers += [sample_driver(rng, self.driver_ranges, v0=v * rng.uniform(*self.v0_factor_range))
+                    for _ in range(self.followers)]
+        return lanes, v, drivers
+
+    def sample(self, rng):
+        """Draw lanes, speed, drivers and ego start."""
+        lanes, v, drivers = self.stream(rng)
         ego = {"x": self.platoon_x + rng.uniform(*self.ego_offset_range), "y": 0.0, "psi": 0.0,
                "v": max(0.5, v + rng.uniform(*self.ego_dv_range))}
         road = Road(lanes, self.road.lane_width, self.road.car_length, self.road.car_width)
-        return dict(road=road, lane_change=lanes > 2, platoon_v=v, drivers=drivers,
+        return dict(road=road, lane_change=lanes > 2, platoon_x=self.platoon_x, platoon_v=v, drivers=drivers,
                     gap_factor=float(rng.uniform(*self.gap_factor_range)), ego=ego)
+
+
+@dataclass(kw_only=True)
+class DenseScenario(RandomScenario):
+    """Dense traffic: a target-lane stream too long to pass in front of or drop behind before the ego's lane ends at
+    x_ref, the ego starting beside one of its middle cars; drivers, speed, gaps and lanes sampled as in `random`."""
+
+    beside_range: tuple  # the stream car (1 = the front one) the ego starts beside, drawn uniformly
+    min_behind_s: float  # the stream must reach further behind the ego than it drives in this time (s)
+
+    def sample(self, rng):
+        """Draw lanes, speed, drivers and gaps, then put the stream so that the ego is beside car k, within half a gap."""
+        lanes, v, drivers = self.stream(rng)
+        gap_factor = float(rng.uniform(*self.gap_factor_range))
+        k = int(rng.integers(self.beside_range[0], self.beside_range[1] + 1))
+        spacing = [self.road.car_length + gap_factor * d.equilibrium_gap(v) for d in drivers[1:]]
+        x0 = self.ego["x"] + sum(spacing[: k - 1]) + rng.uniform(-0.5, 0.5) * spacing[k - 1]
+        if self.ego["x"] - (x0 - sum(spacing)) < self.min_behind_s * v:
+            raise UserError(f"scenario.followers={self.followers}: the stream reaches {self.ego['x'] - x0 + sum(spacing):.0f} m "
+                            f"behind the ego, less than the {self.min_behind_s * v:.0f} m it drives in min_behind_s="
+                            f"{self.min_behind_s} s; raise scenario.followers")
+        ego = {"x": self.ego["x"], "y": 0.0, "psi": 0.0, "v": max(0.5, v + rng.uniform(*self.ego_dv_range))}
+        road = Road(lanes, self.road.lane_width, self.road.car_length, self.road.car_width)
+        return dict(road=road, lane_change=lanes > 2, platoon_x=x0, platoon_v=v, drivers=drivers,
+                    gap_factor=gap_factor, ego=ego)

@@ -1,4 +1,6 @@
-"""The merge world: bicycles on straight parallel lanes, the ego (index 0) and reactive IDM/MOBIL drivers."""
+"""The merge world: bicycles on straight parallel lanes, the ego (index 0) and reactive IDM/MOBIL drivers; the first
+implementation of data.protocol.World."""
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,10 +16,10 @@ YIELD_LABEL = 0.1  # a driver whose response exceeds this counts as yielding in 
 class Road:
     """Straight lanes along +x; lane k has its centre at y = k * lane_width (m). The ego starts in lane 0."""
 
-    lanes: int = 2
-    lane_width: float = 4.0
-    car_length: float = 3.6
-    car_width: float = 1.6
+    lanes: int
+    lane_width: float
+    car_length: float
+    car_width: float
 
     def lane_of(self, y):
         """Index of the lane whose centre is nearest to lateral position y (m)."""
@@ -28,11 +30,22 @@ class Road:
         return lane * self.lane_width
 
 
+def unit(x):
+    """x clipped to [0, 1]: builtins, as np.clip costs microseconds per scalar in the per-car loop."""
+    return min(max(float(x), 0.0), 1.0)
+
+
+def backfill(z, steps, dt):
+    """xy (steps, M, 2) ending at the xy of states z (M, 4), earlier steps driven backwards at constant velocity (m)."""
+    heading = np.stack([np.cos(z[:, 2]), np.sin(z[:, 2])], -1)
+    return np.stack([z[:, :2] - k * dt * z[:, 3:4] * heading for k in range(steps - 1, -1, -1)])
+
+
 def steer_to(z, y_target, p: bicycle.BicycleParams, k_y=0.6, k_psi=2.0, delta_max=0.5):
     """Lane-keeping steering (rad): heading set-point from the lateral error, then a heading loop."""
     _, y, psi, v = z
     psi_d = np.arctan(k_y * (y_target - y) / max(v, 1.0))
-    return float(np.clip((p.l_f + p.l_r) * k_psi * (psi_d - psi) / max(v, 1.0), -delta_max, delta_max))
+    return float(min(max((p.l_f + p.l_r) * k_psi * (psi_d - psi) / max(v, 1.0), -delta_max), delta_max))
 
 
 def corners(z, road: Road):
@@ -64,9 +77,10 @@ class World:
     road: Road
     z: np.ndarray
     drivers: list
-    will_yield: np.ndarray  # (SLOTS,) latched hidden decision per driver, drawn once per episode
+    will_yield: np.ndarray  # (M,) latched hidden decision per driver, drawn once per episode
+    b_max: float  # the hardest any other car can brake (m/s^2): a cut-in with no room left ends in a collision
+    params: bicycle.BicycleParams
     lane_change: bool = False  # MOBIL lane changes allowed (three-lane scenarios)
-    params: bicycle.BicycleParams = field(default_factory=bicycle.BicycleParams)
     mobil_period: float = 1.0  # seconds between a driver's lane-change decisions
     t: float = 0.0
     target_lane: np.ndarray = None
@@ -74,6 +88,7 @@ class World:
     yielding: np.ndarray = None  # (SLOTS,) whether each driver brakes for the ego at this step (response above YIELD_LABEL)
     seen: list = None  # past states z, newest last, from which drivers perceive the ego with their reaction delay
     collisions: list = field(default_factory=list)  # (time s, i, j) of every body overlap seen
+    _lanes: np.ndarray = None  # lane_of(z[:, 1]) while a step reads the fixed current z: computed once, not per car
 
     def __post_init__(self):
         m = len(self.z)
@@ -95,7 +110,7 @@ class World:
 
     def in_lane(self, lane):
         """Mask (SLOTS,) of vehicles occupying `lane`: nearest to its centre, or an other car changing into it."""
-        mask = self.road.lane_of(self.z[:, 1]) == lane
+        mask = (self._lanes if self._lanes is not None else self.road.lane_of(self.z[:, 1])) == lane
         mask[1:] |= self.target_lane[1:] == lane
         return mask
 
@@ -133,7 +148,7 @@ class World:
         if self.road.lane_of(z[0, 1]) == own or not dx < d.view:
             return 0.0
         depth = (d.d_react - abs(z[0, 1] - self.road.centre(own))) / d.d_ramp
-        return float(np.clip(depth, 0.0, 1.0) * np.clip(dx / d.x_ramp, 0.0, 1.0))
+        return float(unit(depth) * unit(dx / d.x_ramp))
 
     def respond(self):
         """Advance every yielding driver's response one step towards its perceived encroachment (first-order lag,
@@ -152,7 +167,7 @@ class World:
         a = min(self.idm_to(j, self.leader(j, lane)) for lane in lanes)
         if self.response[j] == 0.0:
             return a
-        ahead = np.clip((self.z[0, 0] - self.z[j, 0]) / d.x_ramp, 0.0, 1.0)  # nothing to yield to once the ego is behind
+        ahead = unit((self.z[0, 0] - self.z[j, 0]) / d.x_ramp)  # nothing to yield to once the ego is behind
         return a + self.response[j] * ahead * (min(a, max(self.idm_to(j, 0), -d.b_yield)) - a)
 
     def mobil(self, j, a_now):
@@ -179,26 +194,82 @@ class World:
         gain = self.idm_to(j, new_leader) - a_now + d.politeness * (nf_gain + of_gain)
         return new if gain > d.a_gain + d.a_bias else lane
 
+    def states(self):
+        """Every car's state z (M, 4) = [x, y, psi, v] (m, m, rad, m/s) now, the ego first; row i is car id i."""
+        return self.z.copy()
+
+    def copy(self) -> "World":
+        """An independent copy: same drivers, same hidden decisions, same past (branches, the oracle, the ceiling)."""
+        return copy.deepcopy(self)
+
+    def decisions(self):
+        """The hidden, latched decisions to yield (M,) (the ego's always False): for benchmarks, never for a planner."""
+        return self.will_yield.copy()
+
+    def with_decisions(self, will_yield) -> "World":
+        """A copy whose hidden decisions to yield are `will_yield` (M,); the ego's stays False."""
+        w = self.copy()
+        w.will_yield = np.asarray(will_yield, dtype=bool).copy()
+        w.will_yield[0] = False
+        return w
+
+    def redrawn(self, rng: np.random.Generator) -> "World":
+        """A copy whose decisions to yield are re-drawn from their prior, Bernoulli(eta_coop) per driver."""
+        return self.with_decisions(np.concatenate([[False], rng.random(len(self.drivers)) < [d.eta_coop for d in self.drivers]]))
+
     def step(self, ego_u, ego_z=None):
         """Advance dt: the ego applies ego_u = [delta, a], or with ego_z (4,) is put at that state instead (a planned
-        path, for planner.gradients.WorldModel's copies); returns the indices pairs that collided this step."""
+        path: `step_to`); returns the index pairs that collided this step."""
         p = self.params
         u = np.zeros((len(self.z), 2))
         u[0] = ego_u
         decide = self.lane_change and int(round(self.t / p.dt)) % max(1, int(round(self.mobil_period / p.dt))) == 0
         self.respond()
+        self._lanes = self.road.lane_of(self.z[:, 1])
         for j in range(1, len(self.z)):
-            a = self.acceleration(j)
+            a = max(self.acceleration(j), -self.b_max)
             if decide and abs(self.z[j, 1] - self.road.centre(self.target_lane[j])) < 0.3:
                 self.target_lane[j] = self.mobil(j, a)
             u[j] = [steer_to(self.z[j], self.road.centre(self.target_lane[j]), p), a]
+        self._lanes = None
         z_next = bicycle.step(self.z, u, p)
         z_next[1:, 3] = np.maximum(z_next[1:, 3], 0.0)  # human drivers stop, they do not reverse
         if ego_z is not None:
             z_next[0] = ego_z
+        return self._advance(z_next)
+
+    def step_to(self, ego_z):
+        """Advance dt with the others driving and the ego put at the planned state ego_z (4,); returns collided pairs."""
+        return self.step(np.zeros(2), ego_z=np.asarray(ego_z, dtype=float))
+
+    def move(self, ego_u, others_xy):
+        """Advance dt with the ego on its bicycle under ego_u and every other car put at others_xy (M-1, 2), heading and
+        speed from its displacement (world=predictor: the others follow a predictor, as in the paper)."""
+        z = self.z.copy()
+        moved = np.asarray(others_xy, dtype=float) - z[1:, :2]
+        z[1:, 2] = np.where(np.hypot(*moved.T) > 1e-6, np.arctan2(moved[:, 1], moved[:, 0]), z[1:, 2])
+        z[1:, 3] = np.hypot(*moved.T) / self.params.dt
+        z[1:, :2] = others_xy
+        z[0] = bicycle.step(self.z[0], ego_u, self.params)
+        return self._advance(z)
+
+    def _advance(self, z_next):
+        """Take z_next as the state one dt on, remember it, record and return the pairs whose bodies overlap."""
         self.z = z_next
-        self.t += p.dt
+        self.t += self.params.dt
         self.seen = self.seen[-MEMORY:] + [z_next.copy()]
-        hits = [(i, j) for i in range(len(self.z)) for j in range(i + 1, len(self.z)) if overlap(self.z[i], self.z[j], self.road)]
+        d = np.hypot(*(self.z[:, None, :2] - self.z[None, :, :2]).transpose(2, 0, 1))
+        near = zip(*np.nonzero(np.triu(d <= np.hypot(self.road.car_length, self.road.car_width), 1)))
+        hits = [(int(i), int(j)) for i, j in near if overlap(self.z[i], self.z[j], self.road)]
         self.collisions += [(self.t, i, j) for i, j in hits]
         return hits
+
+    def past_xy(self, steps):
+        """xy (steps, M, 2) of the last `steps` steps, newest last (m); before t = 0 every car is driven backwards at its
+        initial heading and speed (constant velocity), as nothing was observed then."""
+        if steps > MEMORY + 1:
+            raise ValueError(f"a world remembers {MEMORY + 1} steps; {steps} asked")
+        known = np.array([z[:, :2] for z in self.seen[-steps:]])
+        if len(known) >= steps:
+            return known
+        return np.concatenate([backfill(self.seen[0], steps - len(known) + 1, self.params.dt)[:-1], known])

@@ -27,7 +27,7 @@ class Analytic:
 
     name = "analytic"
 
-    def __init__(self, d_react=2.8, s_lat=0.25, s_ahead=0.5, view=20.0, s_view=1.0, slowdown=0.1, c=0.1):
+    def __init__(self, d_react, s_lat, s_ahead, view, s_view, slowdown, c=0.1):
         self.d_react, self.s_lat, self.s_ahead = d_react, s_lat, s_ahead
         self.view, self.s_view, self.slowdown, self.c = view, s_view, slowdown, c
 

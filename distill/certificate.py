@@ -118,12 +118,11 @@ def smallest_positive_sv(X, tol=1e-12):
     return float(sv[sv > tol * sv[0]].min())
 
 
-def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0,
-              params=bicycle.BicycleParams()):
+def rho_bound(c, box, cost, t_p=8, n_others=SLOTS - 1, lambda_s=1.0, v=5.0, delta=0.0, a=0.0, *, params):
     """Theorem 1: rho > max{1, (1 + 2 sigma_min(C)) L_J M}, with Lemma 3's L_1, L_2, L_3, L_g; returns every term.
 
     Assumptions: the ego's own |x| <= box.x and |y| <= box.y over the horizon (x_max, y_max); one multiplier
-    lambda_s per step and car (||lambda_s||_1 = T_p lambda_s); linearisation at a straight drive at speed v.
+    lambda_s per step and car (||lambda_s||_1 = T_p lambda_s); the bicycle `params` linearised at a straight drive at v.
     J is block-separable in (Delta, alpha, Z), so L_J is the largest of its blocks' gradient Lipschitz constants.
     M bounds the sub-minimisation maps H_1..H_3 = pseudo-inverses of A, B, C on their images (Lemma 2).
     """

@@ -87,7 +87,7 @@ def read_checkpoint(path: Path, name: str | None = None) -> torch.nn.Module:
     return net.eval()
 
 
-def load(name: str, models_dir="models"):
+def load(name: str, models_dir):
     """The predictor `name` (teacher | student | cv) from models_dir/<name>.ckpt."""
     if name == "cv":
         return ConstantVelocity()

@@ -83,7 +83,9 @@ def certify(cfg_cert, predictor, windows, rng):
     lo, hi = certificate.feature_box(cfg_cert.region)
     region = certificate.region_constants(predictor.weights, predictor.s, lo, hi)
     c = certificate.tightest(glob, region)
-    c.update(certificate.rho_bound(c, box, dict(cfg_cert.cost), cfg_cert.T_p, lambda_s=cfg_cert.lambda_s,
+    scenarios = scenario_configs(list(cfg_cert.scenarios))
+    params = certificate.scenario_setting(next(iter(scenarios.values())))[3]  # the global bound drives the first one's car
+    c.update(certificate.rho_bound(c, box, dict(cfg_cert.cost), cfg_cert.T_p, lambda_s=cfg_cert.lambda_s, params=params,
                                    **dict(cfg_cert.typical)))
     c.update({f"{k}_global": glob[k] for k in ("theta_x", "theta_y", "L")})
     c.update({f"{k}_region": region[k] for k in ("theta_x", "theta_y", "L")})
@@ -109,7 +111,7 @@ def certify(cfg_cert, predictor, windows, rng):
     emp["region_fraction_planner_like"] = float(certificate.in_region(pert, lo, hi).mean())
     plain = OmegaConf.to_container(cfg_cert, resolve=True)
     c["scenarios"] = certificate.per_scenario(predictor.weights, predictor.s, glob, plain["region"],
-                                              scenario_configs(plain["scenarios"]), plain["planner"], plain["cost"],
+                                              scenarios, plain["planner"], plain["cost"],
                                               cfg_cert.T_p, cfg_cert.lambda_s)
     for name, sc in c["scenarios"].items():  # each scenario's bound checked at its own region's corners and inside
         sc_emp = certificate.sampled(autodiff, jac64, certificate.region_samples(
@@ -169,7 +171,7 @@ def run(cfg: DictConfig):
             models.TorchPredictor(name, models.read_checkpoint(best))
         test = dataset.load(cfg.dataset_dir, cfg.eval_split)
         t_p = cfg.paper.T_p  # rollout horizon of the ade_rollout / fde_rollout figures
-        table = {name: metrics.ade(predictor, test, t_p), "cv": metrics.ade(models.load("cv"), test, t_p)}
+        table = {name: metrics.ade(predictor, test, t_p), "cv": metrics.ade(models.load("cv", cfg.models_dir), test, t_p)}
         results.update(table[name])
         results.update({f"cv_{k}": v for k, v in table["cv"].items()})
         results["params"] = sum(p.numel() for p in predictor.module.parameters())

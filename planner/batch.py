@@ -7,8 +7,9 @@ backend; `ray.address=auto` or `ray://host:10001` joins a running cluster, null 
 episode depends only on its seed, so both give the same per-episode results.
 
 An episode that raises is recorded as a crash with its message in the CSV; the batch goes on. Rates and means are
-over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size. Intervals: Wilson for
-`merged` and `collision` (`merged_lo`, `merged_hi`, ...), Student t for the means of t_merge, C_max and fallbacks.
+over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size. The headline is the
+courteous-merge rate (data.outcomes). Intervals (core.stats): Wilson for `courteous`, `merged` and `collision`
+(`courteous_lo`, `courteous_hi`, ...), Student t for the means of t_merge, C_max, fallbacks and b_imposed_max.
 """
 import contextlib
 import csv
@@ -25,10 +26,11 @@ from joblib import Parallel, delayed, effective_n_jobs, parallel_config  # noqa:
 from omegaconf import OmegaConf  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
+from core import stats  # noqa: E402
 from core.jobs import UserError, mlflow_run  # noqa: E402
 from planner import report, setup  # noqa: E402
 
-FIGURES = {"t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
+FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
            "step_ms": "MPC step wall time (ms, every step)", "admm_iters_mean": "ADMM iterations (episode mean)",
            "fallbacks": "fallbacks per episode"}
 _WORKER = {}  # per process: the config it was set up for, and its (scenario, source, settings)
@@ -51,7 +53,7 @@ def episode(cfg_dict: dict, method: str, seed: int):
         cfg = OmegaConf.create(cfg_dict)
         scenario, source, s = worker_setup(cfg)
         ep = setup.drive(cfg, scenario, source, s, method, seed=seed)
-        m = report.metrics(ep, scenario.y_ref, scenario.x_ref, cfg.merge_tol)
+        m = report.metrics(ep, scenario, cfg.merge_tol)
         finite = np.isfinite(ep.states).all() and np.isfinite(ep.controls).all() and \
             np.isfinite([m[k] for k in ("t_merge", "C_max", "d_min_m")]).all()
         row = {"seed": seed, **m, "crash": 0, "nan": int(not finite), "error": "",
@@ -65,21 +67,11 @@ def aggregate(rows, step_ms, iters) -> dict:
     """The run's metrics from the per-episode rows and the pooled per-step wall times (ms) and iterations, with 95%
     intervals `<metric>_lo`, `<metric>_hi` (module doc)."""
     done = [r for r in rows if not r["crash"]]
-    col = lambda k: np.array([r[k] for r in done], float)
-    merged = col("merged").astype(bool) if done else np.zeros(0, bool)
     safe = lambda f, a: float(f(a)) if len(a) else float("nan")
-    out = {"episodes": float(len(rows)), "crashes": float(len(rows) - len(done)), "nans": float(sum(r["nan"] for r in rows)),
-           "d_min_m": safe(np.min, col("d_min_m") if done else []),
-           "step_ms_median": safe(np.median, step_ms), "step_ms_p95": safe(lambda a: np.percentile(a, 95), step_ms),
-           "admm_iters_mean": safe(np.mean, iters)}
-    for k in ("merged", "collision"):
-        hits = col(k) if done else np.zeros(0)
-        out[k] = safe(np.mean, hits)
-        out[f"{k}_lo"], out[f"{k}_hi"] = report.wilson(float(hits.sum()), len(hits))
-    for k, values in (("t_merge", col("t_merge")[merged] if done else []), ("C_max", col("C_max") if done else []),
-                      ("fallbacks", col("fallbacks") if done else [])):
-        out[k], out[f"{k}_lo"], out[f"{k}_hi"] = report.mean_ci(values)
-    return out
+    return {"episodes": float(len(rows)), "crashes": float(len(rows) - len(done)), "nans": float(sum(r["nan"] for r in rows)),
+            "d_min_m": safe(np.min, [r["d_min_m"] for r in done]), "ttc_min": safe(np.min, [r["ttc_min"] for r in done]),
+            "step_ms_median": safe(np.median, step_ms), "step_ms_p95": safe(lambda a: np.percentile(a, 95), step_ms),
+            "admm_iters_mean": safe(np.mean, iters), **stats.outcomes([done])}
 
 
 def quiet() -> bool:
@@ -172,7 +164,7 @@ def record(cfg, scenario, source, s, method: str, out: list, out_dir) -> dict:
     write_csv(rows, csv_path)
     plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
     with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario.name}", method=method,
-                    episodes=len(rows), **setup.run_params(scenario, source, s, cfg.seed, cfg.solver.name)):
+                    episodes=len(rows), **setup.run_params(scenario, source, cfg.zstep, cfg.seed, cfg.solver.name)):
         mlflow.log_metrics(r)
         mlflow.log_artifact(str(csv_path))
         for p in plots:
@@ -180,7 +172,7 @@ def record(cfg, scenario, source, s, method: str, out: list, out_dir) -> dict:
     for e in sorted({row["error"] for row in rows if row["crash"]}):
         log.info(f"[{method}] crash: {e}")
     ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
-    log.info(f"[{method}] {title} (95% intervals): merged {ci('merged', '.1%')}, collision {ci('collision', '.1%')}, "
+    log.info(f"[{method}] {title} (95% intervals): courteous merges {ci('courteous', '.1%')}, merged {ci('merged', '.1%')}, collision {ci('collision', '.1%')}, "
              f"t_merge {ci('t_merge', '.1f')} steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / "
              f"{r['step_ms_p95']:.1f} p95, fallbacks per episode {ci('fallbacks', '.2f')}, {r['crashes']:.0f} crashes, "
              f"{r['nans']:.0f} NaN episodes; outputs in {out_dir}")

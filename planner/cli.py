@@ -13,7 +13,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, options, writable
 from planner import batch, report
 from planner.setup import drive, run_params, setup
 
@@ -39,13 +39,12 @@ def check_groups(argv):
     comma-separated sweep checked)."""
     for a in argv:
         key, _, value = a.lstrip("+~").partition("=")
-        group = Path(CONF_DIR) / key
-        if not value or not group.is_dir():
+        choices = options(key)  # none: not a config group
+        if not value or not choices:
             continue
-        options = sorted(p.stem for p in group.glob("*.yaml"))
         for v in value.split(","):
-            if v not in options:
-                raise UserError(f"unknown {key} '{v}'; choose one of {', '.join(options)}")
+            if v not in choices:
+                raise UserError(f"unknown {key} '{v}'; choose one of {', '.join(choices)}")
 
 
 @guarded
@@ -63,11 +62,11 @@ def run(cfg: DictConfig) -> dict:
         if cfg.plots and len(episodes) > 1 else []
     results = {}
     for m, ep in episodes.items():
-        results[m] = report.metrics(ep, scenario.y_ref, scenario.x_ref, cfg.merge_tol)
+        results[m] = report.metrics(ep, scenario, cfg.merge_tol)
         csv_path = out_dir / f"steps_{m}.csv"
         report.write_csv(ep, csv_path)
         with mlflow_run("planner", cfg, run_name=f"{m}-{source.name}-{scenario.name}", method=m,
-                        **run_params(scenario, source, s, cfg.seed, cfg.solver.name)):
+                        **run_params(scenario, source, cfg.zstep, cfg.seed, cfg.solver.name)):
             mlflow.log_metrics(results[m])
             mlflow.log_artifact(str(csv_path))
             own = report.figures({m: ep}, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) if cfg.plots else []

@@ -3,7 +3,7 @@
 Rows come from the `planner` experiment grouped by the run params that define a comparable run (`group_by`: scenario,
 world, gradient source, predictor, method, Z-step, linearisation, T_p, rho, max_steps, the episode seeds); runs that
 share all of them (repeated trainings, re-runs) are pooled and listed in the row's `runs` column. A batch run counts as
-`episodes` episodes (the row's `n_episodes` sums them): its `merged`/`collision` metrics are rates (95% Wilson intervals over the pooled episodes), the
+`episodes` episodes (the row's `n_episodes` sums them): its `courteous`/`merged`/`collision` metrics are rates (95% Wilson intervals over the pooled episodes), the
 others means; t_merge is averaged over merged episodes only.
 
 Accuracy columns belong to the row's predictor and gradient source: the latest `distill` run of its model (constant
@@ -20,14 +20,14 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, guarded, mlflow_run
-from planner.report import wilson
+from core import stats, validate
+from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, guarded, mlflow_run, options
+from planner.gradients import predictor_of
 
 log = logging.getLogger(__name__)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", "grad_cosine", "grad_rel_err"]
+MEANS = ("t_merge", "C_max", "admm_iters_mean", "fallbacks", "b_imposed_max")  # episode-weighted over the pooled runs
 INTERACTION = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac"]
-TRAINED = ("teacher", "student")  # predictors with a `distill` run of their own
-OWN_PREDICTOR = {"surrogate": "teacher", "fd": "teacher"}  # conf/predictor/: sources whose values come from another model
 
 
 def latest(runs: pd.DataFrame, param: str, value: str) -> pd.Series | None:
@@ -49,7 +49,7 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     """Accuracy columns of a row: its predictor's ADE (m), its gradient's error against teacher autodiff, the source's
     interaction scores."""
     row = {k: np.nan for k in ACCURACY}
-    if predictor in TRAINED:
+    if predictor in validate.TRAINED_PREDICTORS:  # a model with a `distill` run of its own
         row.update(metrics_of(latest(distill_runs, "model", predictor), ("ade_1step_m", "ade_rollout_m")))
     elif predictor == "cv":  # every distill run evaluates constant velocity on its test split beside its own model
         row.update(metrics_of(latest(distill_runs, "model", "teacher"), ("ade_1step_m", "ade_rollout_m"), "cv_"))
@@ -83,23 +83,17 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
         row = dict(zip(group_by, key if isinstance(key, tuple) else (key,)))
         row["n_runs"] = len(g)
         row["n_episodes"] = int(w.sum())
-        for m in ("merged", "collision"):
-            col = g.get(f"metrics.{m}")
-            ok = col is not None and col.notna().all()
-            row[f"{m}_rate"] = float(np.average(col, weights=w)) if ok else np.nan
-            row[f"{m}_lo"], row[f"{m}_hi"] = wilson(float(np.round((col * w).sum())), float(w.sum())) if ok else (np.nan, np.nan)
-        for m in ("t_merge", "C_max", "admm_iters_mean", "fallbacks"):
-            col = g.get(f"metrics.{m}")
-            # t_merge means something only for merges: a run that never merged logs the steps it drove
-            wm = w * g["metrics.merged"].fillna(0.0) if m == "t_merge" and "metrics.merged" in g else w
-            ok = col.notna() & (wm > 0) if col is not None else None
-            row[m] = float(np.average(col[ok], weights=wm[ok])) if ok is not None and ok.any() else np.nan
+        pooled = stats.outcomes([[{"n": n, **{m: r.get(f"metrics.{m}", np.nan) for m in (*stats.RATES, *MEANS)}}
+                                  for n, (_, r) in zip(w, g.iterrows())]], means=MEANS, weight="n")
+        for m in stats.RATES:
+            row[f"{m}_rate"], row[f"{m}_lo"], row[f"{m}_hi"] = pooled[m], pooled[f"{m}_lo"], pooled[f"{m}_hi"]
+        row.update({m: pooled[m] for m in MEANS})  # no intervals: the runs log no spread within their batches
         row["d_min_m"] = float(g["metrics.d_min_m"].min()) if "metrics.d_min_m" in g else np.nan
         for m in ("step_ms_median", "step_ms_p95"):
             row[m] = float(g[f"metrics.{m}"].median()) if f"metrics.{m}" in g else np.nan
         gradients, predictor = row.get("gradients", "-"), row.get("predictor", "-")
         if predictor == "-":  # a run older than the `predictor` param: its gradient source's default predictor
-            predictor = OWN_PREDICTOR.get(gradients, gradients)
+            predictor = predictor_of(gradients) if gradients in options("gradients") else gradients
         row.update(accuracy(gradients, predictor, distill_runs, surrogate_runs, interaction_runs))
         row["runs"] = " ".join(sorted(r[:8] for r in g["run_id"])) if "run_id" in g else ""
         rows.append(row)
@@ -132,13 +126,13 @@ def plot(df: pd.DataFrame, path: Path, group_by=()):
         err = 1.0 - r["grad_cosine"]
         if np.isfinite(err):
             axes[0].plot(x, max(err, 1e-6), **style)
-        yerr = [[r["merged_rate"] - r["merged_lo"]], [r["merged_hi"] - r["merged_rate"]]]
-        h = axes[1].errorbar(x, r["merged_rate"], yerr=yerr if np.isfinite(r["merged_lo"]) else None, capsize=4, **style)
+        yerr = [[r["courteous_rate"] - r["courteous_lo"]], [r["courteous_hi"] - r["courteous_rate"]]]
+        h = axes[1].errorbar(x, r["courteous_rate"], yerr=yerr if np.isfinite(r["courteous_lo"]) else None, capsize=4, **style)
         if np.isfinite(r["react_corr_jac"]):
             axes[2].plot(x, r["react_corr_jac"], **style)
         handles.append((h, f"{label(r, varying)}: {r['n_episodes']} ep, {r['n_runs']} run{'s' * (r['n_runs'] > 1)}"))
     axes[0].set(xscale="log", yscale="log", ylabel="1 - cos(d b_i/dZ, teacher autodiff)", title="gradient error vs speed")
-    axes[1].set(xscale="log", ylabel="merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
+    axes[1].set(xscale="log", ylabel="courteous-merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
     axes[2].set(xscale="log", ylabel="react_corr_jac (first-order response vs true)", ylim=(-1.05, 1.05),
                 title="interaction fidelity vs speed")
     for ax in axes:
@@ -163,13 +157,15 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
     return runs
 
 
-SHOWN = ["n_runs", "n_episodes", "merged_rate", "merged_lo", "merged_hi", "collision_rate", "t_merge", "d_min_m", "fallbacks",
+SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi", "merged_rate", "collision_rate", "t_merge",
+         "b_imposed_max", "d_min_m", "fallbacks",
          "step_ms_median", "ade_rollout_m", "grad_cosine", "react_corr", "react_corr_jac", "runs"]
 
 
 @guarded
 def run(cfg: DictConfig) -> pd.DataFrame:
     """Build the table, print it, write compare.csv and compare.png, log both to MLflow (experiment `compare`)."""
+    validate.check(cfg, "compare")
     group_by = list(cfg.group_by)
     df = table(search(cfg.experiment, cfg.scenario), search("distill"), search("surrogate"), group_by, search("interaction"))
     out = Path(cfg.out_dir)

@@ -4,7 +4,6 @@ from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
-from scipy import sparse
 
 
 @dataclass(frozen=True)
@@ -21,9 +20,9 @@ class Weights:
 
 
 class Quadratic(NamedTuple):
-    """f(x) = 1/2 x'Px + q'x + r with P sparse symmetric."""
+    """f(x) = 1/2 x'Px + q'x + r with P dense symmetric (fixed per weights: shared, never modified in place)."""
 
-    P: sparse.csc_matrix
+    P: np.ndarray
     q: np.ndarray
     r: float
 
@@ -42,9 +41,9 @@ def input_cost(T_p, lam, lam_rate, previous):
 
 @lru_cache(maxsize=64)
 def _input_form(T_p, lam, lam_rate):
-    """P of input_cost and its difference operator: fixed per weights, and scipy.sparse construction costs ~1 ms a step."""
-    diff = sparse.eye(T_p, format="csc") - sparse.eye(T_p, k=-1, format="csc")  # row tau: u(tau) - u(tau-1), u(-1) in q
-    return sparse.csc_matrix(2.0 * (lam * sparse.eye(T_p) + lam_rate * diff.T @ diff)), diff
+    """P of input_cost and its difference operator: fixed per weights, so built once."""
+    diff = np.eye(T_p) - np.eye(T_p, k=-1)  # row tau: u(tau) - u(tau-1), u(-1) in q
+    return 2.0 * (lam * np.eye(T_p) + lam_rate * diff.T @ diff), diff
 
 
 def Phi_1(T_p, w: Weights, delta_prev):
@@ -60,8 +59,7 @@ def Phi_2(T_p, w: Weights, a_prev):
 @lru_cache(maxsize=64)  # the same every MPC step of a run; callers never modify P or q in place
 def Phi_3(T_p, w: Weights, y_ref, v_ref):
     """Lateral deviation from y_ref (m) and speed error from v_ref (m/s) over z(1..T_p); Z stacks [x, y, psi, v]."""
-    S_y = sparse.csc_matrix((np.ones(T_p), (np.arange(T_p), 4 * np.arange(T_p) + 1)), shape=(T_p, 4 * T_p))
-    S_v = sparse.csc_matrix((np.ones(T_p), (np.arange(T_p), 4 * np.arange(T_p) + 3)), shape=(T_p, 4 * T_p))
+    S_y, S_v = np.eye(4 * T_p)[1::4], np.eye(4 * T_p)[3::4]  # pick y(tau), v(tau) out of Z
     P = 2.0 * (w.lambda_div * S_y.T @ S_y + w.lambda_v * S_v.T @ S_v)
     q = -2.0 * (w.lambda_div * y_ref * S_y.T @ np.ones(T_p) + w.lambda_v * v_ref * S_v.T @ np.ones(T_p))
-    return Quadratic(sparse.csc_matrix(P), q, T_p * (w.lambda_div * y_ref**2 + w.lambda_v * v_ref**2))
+    return Quadratic(P, q, T_p * (w.lambda_div * y_ref**2 + w.lambda_v * v_ref**2))

@@ -2,18 +2,27 @@
 
 Each source offers `values(history, ego_futures)` (B, T_p, SLOTS, 2) for a batch of ego plans and
 `jacobian(history, ego_future)` -> values (T_p, SLOTS, 2), d values / d ego xy (T_p, SLOTS, 2, T_p, 2), metres throughout.
-Built by the `gradients` config group (conf/gradients/), each option naming its class, predictor and settings.
+Built by the `gradients` config group (conf/gradients/), each option naming its class, predictor and settings; each
+class declares what it can do as class attributes, readable from an option's `_target_` without building it.
 """
-import copy
+from pathlib import Path
 
 import numpy as np
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
 
-from core.jobs import UserError
+from core.jobs import CONF_DIR, UserError, options
 from core.rollout import rollout, rollout_jacobian
+from core.validate import TRAINED_PREDICTORS
 
 
 class Source:
     """Values from the predictor's own recursion; subclasses say where the derivative comes from."""
+
+    joint = False  # values come with the Jacobian at little extra cost: a trial plan is linearised (Safety.trial)
+    torch_rollout = False  # `module` and `dtype` give a torch rollout autograd can differentiate (zstep=pygranso)
+    needs_world = False  # reads the running world (the oracle): only the planner's closed loop, world=reactive
+    differentiates = False  # derives from the predictor's forward pass alone, so it works over any predictor
 
     def __init__(self, name, predictor):
         self.name, self.predictor = name, predictor
@@ -40,21 +49,12 @@ class ExactLocal(Source):
 
 
 class Surrogate(Source):
-    """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule; with
-    `rollout`, a whole linearisation (T_p windows' values and Jacobians, composed) in one onnxruntime call."""
+    """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule."""
 
-    def __init__(self, name, predictor, surrogate, rollout):
+    def __init__(self, name, predictor, surrogate):
         super().__init__(name, predictor)
-        self.surrogate, self.rollout = surrogate, rollout
-        self.joint = rollout or surrogate.fused  # values and J come from one onnxruntime call: see Safety.trial
-
-    def values(self, history, ego_futures):
-        """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
-        if not self.rollout:
-            return super().values(history, ego_futures)
-        ego_futures = np.asarray(ego_futures, dtype=float)
-        return self.surrogate.rollout(np.broadcast_to(history, (len(ego_futures),) + np.shape(history)), ego_futures,
-                                      grads=False)
+        self.surrogate = surrogate
+        self.joint = surrogate.fused  # a fused export gives values and J in one onnxruntime call
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2); a fused export runs the predictor's forward pass itself (onnxruntime: ~4x faster than
@@ -63,9 +63,6 @@ class Surrogate(Source):
 
     def jacobian(self, history, ego_future):
         """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2) with the surrogate's local Jacobians."""
-        if self.rollout:
-            values, grads = self.surrogate.rollout(np.asarray(history)[None], np.asarray(ego_future)[None])
-            return values[0], grads[0]
         if self.surrogate.fused:  # values and J in one onnxruntime call per step
             return rollout_jacobian(self.surrogate.phi_jac, history, ego_future)
         return rollout_jacobian(lambda w: (self.predictor.phi(w), self.surrogate.jac(w)), history, ego_future)
@@ -74,7 +71,8 @@ class Surrogate(Source):
 class Autodiff(Source):
     """Reverse-mode autodiff (torch.func.jacrev) through the whole recursive rollout of the predictor's torch module."""
 
-    torch_rollout = True  # `module` and `dtype` give a torch rollout that autograd can differentiate (zstep=pygranso)
+    torch_rollout = True
+    differentiates = True
 
     def __init__(self, name, predictor):
         super().__init__(name, predictor)
@@ -101,6 +99,8 @@ class Autodiff(Source):
 class CentralDifferences(Source):
     """A check: central differences of the predictor's rollout, all 4 T_p perturbed plans in one batch; step h (m)."""
 
+    differentiates = True
+
     def __init__(self, name, predictor, h):
         super().__init__(name, predictor)
         self.h = h
@@ -119,10 +119,11 @@ class CentralDifferences(Source):
 class WorldModel:
     """A ceiling for diagnosis, never a predictor the world follows: the running world itself, its drivers and their
     true hidden decisions, driven on in deep copies with the ego put on each plan. planner.closed_loop hands it the
-    world before every step (`world`)."""
+    world and the observed slots' ids before every step (`world`, `ids`)."""
 
     name = "oracle"
     world = None  # the closed loop's world at the current step
+    ids = None  # the world ids of the observation's slots (data.perception), ego first
 
     def futures(self, ego_futures):
         """Every car's xy (B, T, SLOTS, 2) after each step of each ego path (B, T, 2) (m), the ego on its path with the
@@ -130,21 +131,52 @@ class WorldModel:
         if self.world is None:
             raise UserError("predictor=oracle reads the running world: only the planner's closed loop with "
                             "world=reactive can use it")
-        out = np.empty(np.shape(ego_futures)[:2] + self.world.z[:, :2].shape)
+        out = np.empty(np.shape(ego_futures)[:2] + (len(self.ids), 2))
         dt = self.world.params.dt
         for b, path in enumerate(np.asarray(ego_futures, dtype=float)):
-            w = copy.deepcopy(self.world)
+            w = self.world.copy()
             for k, xy in enumerate(path):
-                d = xy - w.z[0, :2]
-                psi = np.arctan2(d[1], d[0]) if np.hypot(*d) > 1e-9 else w.z[0, 2]
-                w.step(np.zeros(2), ego_z=np.array([xy[0], xy[1], psi, np.hypot(*d) / dt]))
-                out[b, k] = w.positions
+                z0 = w.states()[0]
+                d = xy - z0[:2]
+                psi = np.arctan2(d[1], d[0]) if np.hypot(*d) > 1e-9 else z0[2]
+                w.step_to(np.array([xy[0], xy[1], psi, np.hypot(*d) / dt]))
+                out[b, k] = w.states()[self.ids, :2]
         return out
 
 
 class WorldOracle(CentralDifferences):
     """gradients=oracle: the WorldModel's futures, derivatives by central differences of them (step h, m)."""
 
+    needs_world = True
+
     def values(self, history, ego_futures):
         """Every car's xy (B, T_p, SLOTS, 2) under each ego plan (B, T_p, 2), from copies of the running world."""
         return self.predictor.futures(ego_futures)
+
+
+def option(group: str, name: str) -> DictConfig:
+    """conf/<group>/<name>.yaml as written (interpolations unresolved)."""
+    return OmegaConf.load(Path(CONF_DIR) / group / f"{name}.yaml")
+
+
+def source_class(name: str) -> type:
+    """The class gradients=<name> builds (its `_target_`), whose attributes declare what it can do."""
+    return get_class(option("gradients", name)._target_)
+
+
+def available(**capabilities) -> list[str]:
+    """The gradient sources: the options of conf/gradients/, sorted, whose class declares `capabilities`, e.g.
+    available(needs_world=False)."""
+    return [n for n in options("gradients") if all(getattr(source_class(n), k) == v for k, v in capabilities.items())]
+
+
+def predictor_of(name: str) -> str:
+    """The predictor whose values gradients=<name> uses by default (conf/planner.yaml: predictor=${gradients}): its own
+    conf/predictor/ option, or the one that option only extends (fd, surrogate: the teacher)."""
+    return next(iter(option("predictor", name).get("defaults", [])), name)
+
+
+def reads_models(name: str) -> bool:
+    """Whether gradients=<name>, over its default predictor, loads trained models from models_dir (so it runs once per
+    training)."""
+    return "${models_dir}" in OmegaConf.to_yaml(option("gradients", name)) or predictor_of(name) in TRAINED_PREDICTORS

@@ -110,7 +110,7 @@ def nlp(source, T_p: int, T_obs: int, R: float, weights: cost.Weights, options: 
     for x, Phi in ((Delta, cost.Phi_1(T_p, weights, 0.0)), (alpha, cost.Phi_2(T_p, weights, 0.0)),
                    (Z, cost.Phi_3(T_p, weights, 0.0, 0.0))):
         q, r = ca.SX.sym("q", x.numel()), ca.SX.sym("r")
-        J += 0.5 * ca.bilin(ca.DM(Phi.P), x, x) + ca.dot(q, x) + r  # P is fixed by the weights; q, r carry u_prev, refs
+        J += 0.5 * ca.bilin(ca.sparsify(ca.DM(Phi.P)), x, x) + ca.dot(q, x) + r  # P is fixed by the weights; q, r carry u_prev, refs
         params += [q, r]
     history = ca.SX.sym("history", T_obs * SLOTS * 2)
     hist = np.array([history[k] for k in range(history.numel())], dtype=object).reshape(1, T_obs, SLOTS, 2)
@@ -123,7 +123,7 @@ def nlp(source, T_p: int, T_obs: int, R: float, weights: cost.Weights, options: 
 
 def parameters(net: NLP, s: mpc.Settings, obs: mpc.Observation, dyn):
     """The NLP's parameter vector for one step: A, B, C nonzeros, q and r of Phi_1..3, D, history."""
-    out = [dyn.A.toarray()[net.A], dyn.B.toarray()[net.B], dyn.C.toarray()[net.C]]
+    out = [dyn.A[net.A], dyn.B[net.B], dyn.C[net.C]]
     for Phi in mpc.costs(s, obs.u_prev):
         out += [Phi.q, [Phi.r]]
     return np.concatenate([*out, dyn.D, np.ravel(obs.history)])

@@ -4,7 +4,7 @@ A step never raises for a bad observation, a solver failure or an unsafe result:
 (if the predictor still finds it safe) or braking in lane, with the reason.
 """
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -18,8 +18,9 @@ from planner.safety import Safety
 
 @dataclass(frozen=True)
 class Settings:
-    """Everything a step needs besides the observation, SI units; built from the `planner` config's `mpc` node, whose
-    YAML is the one home of every value (planner.setup passes the scenario's y_ref, v_ref, road and params)."""
+    """Everything a step needs besides the observation and the Z-step, SI units, data only; built from the `planner`
+    config's `mpc` node, whose YAML is the one home of every value (planner.setup passes the scenario's y_ref, v_ref, road
+    and params)."""
 
     weights: cost.Weights
     y_ref: float  # m
@@ -37,9 +38,7 @@ class Settings:
     v_box: tuple  # m/s
     y_margin: float  # how far the ego's centre may leave the outer lane centres (m)
     linearize: str  # last_observed | along_plan
-    admm: dict  # planner.admm.admm_solve's max_iters, tol_F, tol_step, balance_rho
-    box_qp: str  # Delta- and alpha-updates: closed_form (the unconstrained minimiser when inside the box, else OSQP) | osqp
-    zstep: Callable  # zstep(Phi_3, C, rho, lo, hi, safety, osqp_settings) -> a Z-step (planner.zstep)
+    admm: admm.ADMMSettings  # planner.admm.admm_solve's max_iters, tol_F, tol_step
     osqp: dict  # OSQP settings of every sub-problem
     check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
     check_steps: int  # steps of that rollout checked: only its start is ever applied, the rest is replanned
@@ -123,19 +122,14 @@ def start_point(s: Settings, obs: Observation, warm: admm.ADMMState | None):
     return start, dynamics.linearize(z0, u_prev[0], u_prev[1], s.params, s.T_p, plan)
 
 
-def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None):
-    """The step's Problem and the ADMM start (start_point, Z clipped to the state box)."""
+def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep):
+    """The step's Problem, its Solvers (the Z-step built by `zstep`, a planner.zstep class with its settings bound) and
+    the ADMM start (start_point, Z clipped to the state box)."""
     start, dyn = start_point(s, obs, warm)
-    Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)
     lo, hi = state_box(s)
-    safety = Safety(source, obs.history, s.R, s.T_p)
-    prob = admm.Problem(
-        dyn, Phi_1, Phi_2, Phi_3, s.rho,
-        admm.box_qp(Phi_1, dyn.A, s.rho, *s.delta_box, s.osqp, s.box_qp == "closed_form"),
-        admm.box_qp(Phi_2, dyn.B, s.rho, *s.a_box, s.osqp, s.box_qp == "closed_form"),
-        s.zstep(Phi_3, dyn.C, s.rho, lo, hi, safety, s.osqp),
-    )
-    return prob, start._replace(Z=np.clip(start.Z, lo, hi))
+    prob = admm.Problem(dyn, *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box), tuple(s.a_box), lo, hi)
+    solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
+    return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
 
 
 def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
@@ -192,13 +186,14 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
                       reason="fallback", F_norm=np.nan, b_min=np.nan, slack=np.nan, fallback=f"{why}; braking in lane")
 
 
-def mpc_step(s: Settings, obs: Observation, source, warm) -> StepResult:
-    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks."""
+def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
+    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks; zstep: the Z-step class with its settings bound
+    (conf/zstep/, bound by conf/solver/admm.yaml)."""
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
         return fallback(s, obs, source, warm, "non-finite observation")
     try:
-        prob, start = build(s, obs, source, warm)
-        st, solve = admm.admm_solve(prob, start, **s.admm)
+        prob, solvers, start = build(s, obs, source, warm, zstep)
+        st, solve = admm.admm_solve(prob, solvers, start, *s.admm)
     except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
         return fallback(s, obs, source, warm, f"solver failure ({e})")
     if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):

@@ -143,20 +143,17 @@ class PyGransoZStep:
 
     name = "pygranso"
 
-    def __init__(self, Phi_3, C, rho, lo, hi, safety, osqp_settings, settings: PyGransoSettings):
-        """osqp_settings: unused (PyGranso brings its own QP solver); taken for the Z-step signature."""
+    def __init__(self, prob, safety, osqp_settings, settings: PyGransoSettings):
+        """prob: the step's planner.admm.Problem; osqp_settings: unused (PyGranso brings its own QP solver), taken for the
+        Z-step signature."""
         import torch
 
         self.pygranso, self.Struct = import_pygranso()
-        self.torch, self.Phi_3, self.C, self.rho, self.safety, self.s = torch, Phi_3, C, rho, safety, settings
-        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
-        self.H = torch.as_tensor((Phi_3.P + rho * C.T @ C).toarray())  # the smooth part's exact Hessian
+        self.torch, self.Phi_3, self.C, self.rho, self.safety, self.s = torch, prob.Phi_3, prob.dyn.C, prob.rho, safety, settings
+        self.lo, self.hi = prob.z_lo, prob.z_hi
+        self.H = torch.as_tensor(self.Phi_3.P + self.rho * self.C.T @ self.C)  # the smooth part's exact Hessian
         self.i_lo, self.i_hi = np.flatnonzero(np.isfinite(self.lo)), np.flatnonzero(np.isfinite(self.hi))
-        self.b = autodiff_b(safety, safety.source) if getattr(safety.source, "torch_rollout", False) else source_b(safety)
-
-    def set_rho(self, rho):
-        """A new ADMM penalty (residual balancing): the smooth part's Hessian P_3 + rho C'C."""
-        self.rho, self.H = rho, self.torch.as_tensor((self.Phi_3.P + rho * self.C.T @ self.C).toarray())
+        self.b = autodiff_b(safety, safety.source) if safety.source.torch_rollout else source_b(safety)
 
     def c(self, Z):
         """Inequality constraints c(Z) <= 0: -b_i(Z) (m^2), then z_min - Z and Z - z_max on the finite bounds."""

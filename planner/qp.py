@@ -13,21 +13,15 @@ ACCEPTED = ("solved", "solved inaccurate", "maximum iterations reached")
 
 
 class QP:
-    """min 1/2 x'Px + q'x s.t. l <= Gx <= u, built once; `solve(q=, l=, u=, Gx=)` updates and warm-starts, `set_P`
-    changes P's values (same sparsity)."""
+    """min 1/2 x'Px + q'x s.t. l <= Gx <= u, built once; `solve(q=, l=, u=, Gx=)` updates and warm-starts."""
 
     def __init__(self, P, q, G, l, u, settings: dict):
         self.G = sparse.csc_matrix(G)
         P = sparse.csc_matrix(np.triu(P) if isinstance(P, np.ndarray) else sparse.triu(P))
         P.sort_indices()
-        self.P_rows, self.P_cols = P.indices, np.repeat(np.arange(P.shape[1]), np.diff(P.indptr))
         self.l, self.u = np.asarray(l, float), np.asarray(u, float)
         self.solver = osqp.OSQP()
         self.solver.setup(P, np.asarray(q, float), self.G, self.l, self.u, verbose=False, warm_starting=True, **settings)
-
-    def set_P(self, P_dense):
-        """New values of P (a dense symmetric array) on the sparsity it was set up with."""
-        self.solver.update(Px=np.ascontiguousarray(P_dense[self.P_rows, self.P_cols]))
 
     def solve(self, q=None, l=None, u=None, Gx=None):
         """Optimal x after updating any of q, l, u and the constraint matrix values Gx (same sparsity, CSC order)."""
@@ -47,34 +41,21 @@ class QP:
 class BoxQP:
     """min 1/2 x'Px + q'x s.t. lo <= x <= hi for a small positive definite P, built once, `solve(q)` per iteration.
 
-    closed_form: first the unconstrained minimiser -P^-1 q (Cholesky); inside the box it is the box QP's solution, exactly,
-    and costs a matrix-vector product; otherwise (or closed_form=False) OSQP, set up at its first use and warm-started."""
+    First the unconstrained minimiser -P^-1 q (Cholesky): inside the box it is the box QP's solution, exactly, and costs a
+    matrix-vector product; otherwise OSQP, set up at its first use and warm-started."""
 
-    def __init__(self, P, q, lo, hi, settings: dict, closed_form: bool):
-        self.P = P.toarray() if sparse.issparse(P) else np.asarray(P, float)
-        self.q0, self.settings, self.closed_form = q, settings, closed_form
+    def __init__(self, P, q, lo, hi, settings: dict):
+        self.P = np.asarray(P, float)
+        self.q0, self.settings = q, settings
         self.lo, self.hi = np.full(len(self.P), lo, float), np.full(len(self.P), hi, float)
-        self.qp = None if closed_form else self.osqp()
-        self.P_inv = linalg.cho_solve(linalg.cho_factor(self.P), np.eye(len(self.P))) if closed_form else None
-
-    def osqp(self):
-        """The OSQP problem on the current P."""
-        return QP(self.P, self.q0, sparse.eye(len(self.P), format="csc"), self.lo, self.hi, self.settings)
-
-    def set_P(self, P_dense):
-        """New P (dense, same sparsity as at set-up)."""
-        self.P = P_dense
-        if self.qp is not None:
-            self.qp.set_P(P_dense)
-        if self.closed_form:
-            self.P_inv = linalg.cho_solve(linalg.cho_factor(P_dense), np.eye(len(P_dense)))
+        self.qp = None
+        self.P_inv = linalg.cho_solve(linalg.cho_factor(self.P), np.eye(len(self.P)))
 
     def solve(self, q):
         """The box QP's minimiser for linear term q."""
-        if self.closed_form:
-            x = -(self.P_inv @ q)
-            if np.all(x >= self.lo) and np.all(x <= self.hi):
-                return x
+        x = -(self.P_inv @ q)
+        if np.all(x >= self.lo) and np.all(x <= self.hi):
+            return x
         if self.qp is None:
-            self.qp = self.osqp()
+            self.qp = QP(self.P, self.q0, sparse.eye(len(self.P), format="csc"), self.lo, self.hi, self.settings)
         return self.qp.solve(q=q)

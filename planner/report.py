@@ -1,7 +1,6 @@
-"""What a run reports: Table II metrics, the per-step CSV, figures like the paper's Figs. 2-4, a merge animation, the
-summary table, and the 95% confidence intervals every aggregate is given with (Wilson for rates, t for means)."""
+"""What a run reports: Table II metrics, the per-step CSV, figures like the paper's Figs. 2-4, a merge animation and the
+summary table."""
 import csv
-import math
 
 import matplotlib
 
@@ -10,48 +9,28 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 from matplotlib.patches import Polygon  # noqa: E402
-from scipy import stats  # noqa: E402
 
+from data import outcomes  # noqa: E402
 from data.plot import draw_road, plot_episode  # noqa: E402
 from data.world import corners  # noqa: E402
 
 COLORS = {"admm": "tab:red", "nnmpc": "tab:purple"}
-Z95 = stats.norm.ppf(0.975)
 
 
-def wilson(k: float, n: float, z: float = Z95) -> tuple[float, float]:
-    """Wilson score 95% interval (lo, hi) of a rate from k successes in n trials; (nan, nan) for n = 0."""
-    if n <= 0:
-        return float("nan"), float("nan")
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
-
-
-def mean_ci(values) -> tuple[float, float, float]:
-    """(mean, lo, hi): the mean of the finite values with its Student-t 95% interval; lo = hi = mean for one value."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if len(v) == 0:
-        return (float("nan"),) * 3
-    m = float(v.mean())
-    if len(v) == 1:
-        return m, m, m
-    half = float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
-    return m, m - half, m + half
-
-
-def metrics(ep, y_ref, x_ref, merge_tol):
-    """Table II and timing metrics of one episode: merged (0/1), t_merge (steps; steps driven if never), C_max, d_min_m, ..."""
+def metrics(ep, scenario, merge_tol):
+    """Table II, courtesy and timing metrics of one episode in `scenario`: merged (0/1), t_merge (steps; steps driven if
+    never), C_max, d_min_m, collision, b_imposed_max (m/s^2), courteous (0/1), ttc_min (s), ..."""
     rows = ep.rows
-    in_lane = [r["step"] for r in rows if abs(r["y"] - y_ref) <= merge_tol and r["x"] < x_ref]
+    in_lane = [r["step"] for r in rows if abs(r["y"] - scenario.y_ref) <= merge_tol and r["x"] < scenario.x_ref]
+    b_imposed = outcomes.b_imposed_max(ep.states, scenario.params.dt)
     ms = np.array([r["step_ms"] for r in rows]) if rows else np.array([np.nan])
     iters = [r["iterations"] for r in rows if not r["fallback"]]
     d0 = np.min(np.hypot(*(ep.states[0, 1:, :2] - ep.states[0, 0, :2]).T))
     return {"merged": float(bool(in_lane)), "t_merge": float(in_lane[0] if in_lane else len(rows)),
             "C_max": float(np.nanmax([r["cost"] for r in rows])) if rows else float("nan"),
             "d_min_m": float(min([d0] + [r["d_min_m"] for r in rows])), "collision": float(ep.collided),
+            "b_imposed_max": b_imposed, "courteous": outcomes.courteous(in_lane, ep.collided, b_imposed, scenario.b_safe),
+            "ttc_min": outcomes.ttc_min(ep.states, scenario.road),
             "step_ms_median": float(np.median(ms)), "step_ms_p95": float(np.percentile(ms, 95)),
             "admm_iters_mean": float(np.mean(iters)) if iters else 0.0,
             "fallbacks": float(sum(bool(r["fallback"]) for r in rows)), "steps": float(len(rows))}
@@ -139,6 +118,9 @@ def table(results: dict) -> str:
     names = list(results)
     lines = [f"{'':>16}" + "".join(f"{n:>24}" for n in names)]
     cell = {
+        "courteous": lambda m: f"{m['courteous']:.0f}",
+        "b_imposed (m/s2)": lambda m: f"{m['b_imposed_max']:.1f}",
+        "ttc_min (s)": lambda m: f"{m['ttc_min']:.1f}",
         "t_merge": lambda m: f"{m['t_merge']:.0f}" if m["merged"] else f"fails after {m['t_merge']:.0f}",
         "C_max": lambda m: f"{m['C_max']:.1f}",
         "d_min (m)": lambda m: f"{m['d_min_m']:.2f}",

@@ -35,7 +35,7 @@ class Safety:
         """b_i(Z) at a trial step: within reuse_radius of the last linearisation, from it; for a source whose values come
         with the Jacobian at little extra cost (`joint`), from a linearisation at Z, kept since an accepted step is
         linearised next; else as __call__."""
-        if self.offset(Z) <= reuse_radius or getattr(self.source, "joint", False):
+        if self.offset(Z) <= reuse_radius or self.source.joint:
             return self.linearize(Z, reuse_radius)[0]
         return self(Z)
 

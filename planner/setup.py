@@ -5,15 +5,13 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import InstantiationException
-from hydra.utils import instantiate
+from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig
 
 from core.jobs import CONF_DIR, UserError
 from distill import certificate
 from planner import closed_loop, mpc
-
-# gradients=oracle's class and its predictor's, the running world: each pairs with the other only
-ORACLE = ("planner.gradients.WorldOracle", "planner.gradients.WorldModel")
+from planner.gradients import WorldModel
 
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
@@ -57,10 +55,11 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
 
 def setup(cfg: DictConfig):
     """(scenario, gradient source, mpc.Settings) of a composed `planner` config."""
-    if (cfg.gradients._target_ == ORACLE[0]) != (cfg.gradients.predictor._target_ == ORACLE[1]):
+    needs_world = get_class(cfg.gradients._target_).needs_world  # the source reads the running world: the oracle
+    if needs_world != (get_object(cfg.gradients.predictor._target_) is WorldModel):  # and so does only its predictor
         raise UserError("gradients=oracle and predictor=oracle go only together: the oracle is the running world, "
                         "not a map of the observed window")
-    if cfg.gradients._target_ == ORACLE[0] and cfg.world != "reactive":
+    if needs_world and cfg.world != "reactive":
         raise UserError("gradients=oracle predicts with the world's own drivers; it needs world=reactive")
     scenario = build(cfg.scenario)
     return scenario, build(cfg.gradients), settings(cfg, scenario)
@@ -71,10 +70,11 @@ def make(scenario: str = "two_lane", overrides=()):
     return setup(planner_config(scenario, overrides))
 
 
-def run_params(scenario, source, s: mpc.Settings, seed: int, solver: str) -> dict:
-    """The MLflow params that name a planner run's set-up (compare groups rows by them); solver: cfg.solver.name."""
-    return {"gradients": source.name, "zstep": s.zstep.func.name, "solver": solver, "scenario": scenario.name, "seed": seed,
-            "predictor": source.predictor.name}
+def run_params(scenario, source, zstep: DictConfig, seed: int, solver: str) -> dict:
+    """The MLflow params that name a planner run's set-up (compare groups rows by them); zstep: cfg.zstep, solver:
+    cfg.solver.name."""
+    return {"gradients": source.name, "zstep": get_object(zstep._target_).name, "solver": solver, "scenario": scenario.name,
+            "seed": seed, "predictor": source.predictor.name}
 
 
 def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None) -> closed_loop.Episode:
@@ -82,4 +82,4 @@ def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=
     step = build(cfg.method[method])
     world = scenario.make_world(cfg.seed if seed is None else seed)
     return closed_loop.drive(world, lambda obs, warm: step(s, obs, source, warm), source, scenario.x_ref,
-                             scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world)
+                             scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world, cfg.n_slots)

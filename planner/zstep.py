@@ -1,9 +1,9 @@
 """Z-update solvers behind one signature, chosen by the `zstep` config group (conf/zstep/); `sqp` is sequential QP with OSQP.
 
-A Z-step is built once per MPC step from (Phi_3, C, rho, box, safety, settings) and called per ADMM iteration as
-zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info), where zstate is the solver's own carried state (None at first,
-and whenever ADMM wants it to start afresh); `set_rho(rho)` follows ADMM's penalty. Its class attribute `name` is the
-option's name (MLflow param `zstep`). An info key `lin_offset` (m) says how far Z_{k+1} lies from where b_i was last
+A Z-step is built once per MPC step from (problem, safety, OSQP settings), the problem a planner.admm.Problem (its
+Phi_3, C, rho and state box), and called per ADMM iteration as zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info),
+where zstate is the solver's own carried state (None at first, and whenever ADMM wants it to start afresh). Its class
+attribute `name` is the option's name (MLflow param `zstep`). An info key `lin_offset` (m) says how far Z_{k+1} lies from where b_i was last
 linearised (see planner.admm.admm_solve).
 """
 from functools import lru_cache
@@ -53,15 +53,13 @@ class SQPZStep:
 
     name = "sqp"
 
-    def __init__(self, Phi_3, C, rho, lo, hi, safety, osqp_settings, settings: SQPSettings):
-        self.Phi_3, self.C, self.rho, self.safety, self.s = Phi_3, C, rho, safety, settings
-        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
-        n_Z = C.shape[0]
+    def __init__(self, prob, safety, osqp_settings, settings: SQPSettings):
+        self.Phi_3, self.C, self.rho, self.safety, self.s = prob.Phi_3, prob.dyn.C, prob.rho, safety, settings
+        self.lo, self.hi = prob.z_lo, prob.z_hi
+        n_Z = self.C.shape[0]
         n_b = (safety.history.shape[1] - 1) * (n_Z // 4)
         self.n_Z, self.n_b = n_Z, n_b
-        self.P_3, self.C_dense = Phi_3.P.toarray(), C.toarray()  # 4T_p square: dense beats sparse from Python
-        self.CtC = self.C_dense.T @ self.C_dense
-        self.H_dense = self.P_3 + rho * self.CtC  # the exact Hessian of the smooth part; fixed while rho is
+        self.H = self.Phi_3.P + self.rho * (self.C.T @ self.C)  # the exact Hessian of the smooth part
         G, self.G_rows, self.G_cols, G_data, self.is_b, self.xy = constraint_pattern(n_Z, n_b)
         # the slack in units of 1/sqrt(its price): its column and its price alike ~sqrt(slack_penalty), which OSQP's
         # equilibration handles; unscaled, its multipliers ~slack_penalty took OSQP ~5x more iterations
@@ -73,17 +71,12 @@ class SQPZStep:
     def P(self):
         """The QP's Hessian over x = [Z; s]: H, and nothing on the slack (priced linearly)."""
         P = np.zeros((self.n_Z + self.n_b,) * 2)
-        P[:self.n_Z, :self.n_Z] = self.H_dense
+        P[:self.n_Z, :self.n_Z] = self.H
         return P
-
-    def set_rho(self, rho):
-        """A new ADMM penalty: H = P_3 + rho C'C."""
-        self.rho, self.H_dense = rho, self.P_3 + rho * self.CtC
-        self.qp.set_P(self.P())
 
     def model(self, Z, lin_q):
         """The exact quadratic part 1/2 Z'HZ + lin_q'Z."""
-        return 0.5 * Z @ (self.H_dense @ Z) + lin_q @ Z
+        return 0.5 * Z @ (self.H @ Z) + lin_q @ Z
 
     def merit(self, Z, lin_q, b):
         """Quadratic part plus the safety term: L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
@@ -96,7 +89,7 @@ class SQPZStep:
         iterations, max slack, infeasible, min b_i, lin_offset (m)."""
         radius = self.s.trust_radius if zstate is None else zstate
         reuse = 0.0 if zstate is None else self.s.reuse_radius
-        lin_q = self.Phi_3.q + self.C_dense.T @ (mu - self.rho * c_Z)
+        lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
         Z = np.clip(Z, self.lo, self.hi)
         b, Jb = self.safety.linearize(Z, reuse)
         b_Z, slack, its = b, 0.0, 0

@@ -20,8 +20,8 @@ from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
 from distill.train import quiet_lightning_tips
 from surrogate import evaluate, jacobians, models
-from surrogate.export import export, export_rollout
-from surrogate.network import Fused, Rollout
+from surrogate.export import export
+from surrogate.network import Fused
 from surrogate.training import JacobianData, rel_err
 
 log = logging.getLogger(__name__)
@@ -92,10 +92,7 @@ def run(cfg: DictConfig) -> dict:
         net = net.eval()
         module = Fused(net, copy.deepcopy(source.module)) if cfg.fused else net
         export(copy.deepcopy(module), stage / "surrogate.onnx", T_obs, M, cfg.source)
-        if cfg.fused:  # the planner's linearisation in one call (gradients.rollout=true)
-            rollout = Rollout(copy.deepcopy(net), copy.deepcopy(source.module), cfg.paper.T_p)
-            export_rollout(rollout, stage / models.ROLLOUT, T_obs, M, cfg.paper.T_p, cfg.source)
-        surrogate = models.load(stage, T_obs, M, rollout=cfg.fused, T_p=cfg.paper.T_p)
+        surrogate = models.load(stage, T_obs, M - 1)
 
         test = X["test"]
         history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
@@ -125,9 +122,6 @@ def run(cfg: DictConfig) -> dict:
         mlflow.log_metrics(metrics)
         mlflow.log_artifact(str(stage / "surrogate.onnx"))
     path = Path(cfg.models_dir) / "surrogate.onnx"
-    if not cfg.fused:  # a rollout export from an earlier fused run no longer matches surrogate.onnx
-        (Path(cfg.models_dir) / models.ROLLOUT).unlink(missing_ok=True)
-
     log.info(f"surrogate of {cfg.source} ({cfg.jacobian}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
              f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
              f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "

@@ -1,5 +1,5 @@
-"""ONNX export of the surrogate (optionally fused with the source predictor's forward pass, or the whole rollout), the
-source predictor and the shapes in the metadata."""
+"""ONNX export of the surrogate (optionally fused with the source predictor's forward pass), the source predictor and the
+shapes in the metadata."""
 import onnx
 import torch
 
@@ -28,9 +28,3 @@ def export(module, path, T_obs, M, source, opset=17):
         outputs = module.float().eval()(window)
     names = ["J", "next"] if isinstance(outputs, tuple) else ["J"]
     write(module, path, {"window": window}, names, {"source": source, "T_obs": T_obs, "M": M}, opset)
-
-
-def export_rollout(module, path, T_obs, M, T_p, source, opset=17):
-    """Write a surrogate.network.Rollout ((history, ego_future) -> (values, grads)) to `path` with metadata `source`."""
-    inputs = {"history": torch.zeros(1, T_obs, M, 2), "ego_future": torch.zeros(1, T_p, 2)}
-    write(module, path, inputs, ["values", "grads"], {"source": source, "T_obs": T_obs, "M": M, "T_p": T_p}, opset)

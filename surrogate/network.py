@@ -10,8 +10,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from core.rollout import chain_rule, rollout
-
 AXES = {"x": 0, "y": 1}
 
 
@@ -73,22 +71,3 @@ class Fused(nn.Module):
     def forward(self, window):
         """(J (B, SLOTS*2, T_obs*SLOTS*2) m/m, next (B, SLOTS, 2) m)."""
         return self.surrogate(window), self.source(window)
-
-
-class Rollout(nn.Module):
-    """(history (B, T_obs, SLOTS, 2), ego plan (B, T_p, 2)) -> the Remark 2 rollout's values (B, T_p, SLOTS, 2) m, by the
-    source predictor, and d values / d ego plan (B, T_p, SLOTS, 2, T_p, 2) m/m, composed from the surrogate's local
-    Jacobians of the T_p windows visited (one batched call): a linearisation in one ONNX call."""
-
-    def __init__(self, surrogate: JacobianNet, source: nn.Module, T_p):
-        super().__init__()
-        self.surrogate, self.source, self.T_p = surrogate, source, T_p
-
-    def forward(self, history, ego_future):
-        """(values (B, T_p, SLOTS, 2), grads (B, T_p, SLOTS, 2, T_p, 2))."""
-        B, T_obs = history.shape[:2]
-        values = rollout(self.source, history, ego_future)
-        track = torch.cat([history, values], dim=1)
-        windows = torch.stack([track[:, tau:tau + T_obs] for tau in range(self.T_p)], dim=1)  # (B, T_p, T_obs, SLOTS, 2)
-        J = self.surrogate(windows.flatten(0, 1)).unflatten(0, (B, self.T_p))
-        return values, chain_rule(J)

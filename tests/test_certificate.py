@@ -3,11 +3,12 @@ theta and L bound autodiff gradients and finite-difference Hessians at corners a
 import numpy as np
 import pytest
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from conftest import compose_cfg
-from core.jobs import UserError
-from data.bicycle import BicycleParams, linearize
+from core.jobs import UserError, options
+from data.bicycle import linearize
 from distill import certificate
 from distill.models import StudentPredictor, TorchPredictor
 from distill.student import GeluStudent
@@ -108,7 +109,8 @@ def test_per_scenario_rho_bound_matches_lemma3_and_theorem1_computed_here(studen
     planner = compose_cfg("planner").mpc
     assert cert["planner"] == {"v_max": planner.v_box[1], "y_margin": planner.y_margin}  # the planner's own limits
     glob = certificate.constants(student.weights, student.s, cert["box"])
-    out = certificate.per_scenario(student.weights, student.s, glob, cert["region"], scenario_configs(cert["scenarios"]),
+    scenarios = scenario_configs(cert["scenarios"])
+    out = certificate.per_scenario(student.weights, student.s, glob, cert["region"], scenarios,
                                    cert["planner"], cert["cost"], cert["T_p"], cert["lambda_s"])
     assert set(out) == {"two_lane", "three_lane", "random"}
     two, three = out["two_lane"], out["three_lane"]
@@ -116,7 +118,8 @@ def test_per_scenario_rho_bound_matches_lemma3_and_theorem1_computed_here(studen
     assert two["L"] <= three["L"] and two["rho_bound"] <= three["rho_bound"]
     assert out["random"]["v"] == 6.5  # the fastest ego start (platoon 5.5 m/s, ego 1 m/s above): the smallest sigma_min(C)
     assert out["random"]["rho_bound"] > three["rho_bound"]  # same region and road as three_lane, faster
-    t_p, dt, v, cost = cert["T_p"], 0.2, 5.0, cert["cost"]
+    params = instantiate(scenarios["two_lane"]["params"])  # the bicycle as the planner builds it for two_lane
+    t_p, dt, v, cost = cert["T_p"], params.dt, 5.0, cert["cost"]
     x_max, y_max = 10.0 * t_p * dt, 4.0 + 2 * 1.0
     s_x, s_y = x_max + 40.0 + 2.0 + 0.5, y_max + 5.0 + 1.53 + 0.25
     tx, ty, L = two["theta_x"], two["theta_y"], two["L"]
@@ -124,7 +127,7 @@ def test_per_scenario_rho_bound_matches_lemma3_and_theorem1_computed_here(studen
     L_g = t_p * (max(L1, 2 * (1 + tx)) + max(L1, 2 * (1 + ty)))
     L_J = 2 * max(cost["lambda_div"], cost["lambda_v"]) + 4 * t_p * cert["lambda_s"] * L_g  # Z's block: 4 others
     assert L_J > 2 * (cost["lambda_delta"] + 4 * cost["lambda_ddelta"] + cost["lambda_a"] + 4 * cost["lambda_da"])
-    A_t, B_t, C_t, _ = linearize(np.array([0.0, 0.0, 0.0, v]), 0.0, 0.0, BicycleParams())
+    A_t, B_t, C_t, _ = linearize(np.array([0.0, 0.0, 0.0, v]), 0.0, 0.0, params)
     A, B, C = np.zeros((4 * t_p, t_p)), np.zeros((4 * t_p, t_p)), -np.eye(4 * t_p)
     for k in range(t_p):
         A[4 * k:4 * k + 4, k], B[4 * k:4 * k + 4, k] = A_t, B_t
@@ -151,5 +154,6 @@ def test_training_penalty_is_the_global_certificates_L(student):
 
 
 def test_unknown_scenario_names_the_key():
-    with pytest.raises(UserError, match="^model.certificate.scenarios: unknown scenario four_lane; choose from random"):
+    with pytest.raises(UserError, match="^model.certificate.scenarios: unknown scenario four_lane; choose from "
+                                         + ", ".join(options("scenario")) + "$"):
         scenario_configs(["two_lane", "four_lane"])

@@ -21,7 +21,7 @@ BRANCHES = dict(compose_cfg("make_dataset").dataset.branches)
 
 def build(seed, episodes=10):
     sc = instantiate(compose_cfg("make_dataset").scenario, _convert_="all")
-    return dataset.build(sc, POLICY, BRANCHES, episodes=episodes, steps=20, t_obs=8, seed=seed)[0]
+    return dataset.build(sc, POLICY, BRANCHES, episodes=episodes, steps=20, t_obs=8, n_slots=4, seed=seed)[0]
 
 
 def test_same_seed_same_data_other_seed_other_data():

@@ -10,7 +10,7 @@ from torch.func import jacrev
 from conftest import compose_cfg
 from core.jobs import UserError
 from data import dataset
-from data.bicycle import BicycleParams, linearize, step
+from data.bicycle import linearize, step
 from distill import certificate
 from distill.models import StudentPredictor, TorchPredictor
 from distill.perturb import box_windows, planner_like
@@ -18,6 +18,7 @@ from distill.perturb import box_windows, planner_like
 STUDENT = compose_cfg("distill", ["model=student"]).model
 CERT = OmegaConf.to_container(STUDENT.certificate, resolve=True)
 BOX = CERT["box"]
+PARAMS = instantiate(compose_cfg("make_dataset", ["scenario=two_lane"]).scenario.params)  # the bicycle Theorem 1 linearises
 
 
 def gelu_student(hidden):
@@ -99,7 +100,7 @@ def test_rho_bound_matrix_terms_match_the_linearised_dynamics():
     """sigma_min(C) and M from A, B, C assembled here block by block and checked to encode the linearised bicycle."""
     t_p, typ = CERT["T_p"], CERT["typical"]
     z0 = np.array([0.0, 0.0, 0.0, typ["v"]])
-    p = BicycleParams()
+    p = PARAMS
     A_t, B_t, C_t, D_t = linearize(z0, typ["delta"], typ["a"], p)
     A, B, C = np.zeros((4 * t_p, t_p)), np.zeros((4 * t_p, t_p)), np.zeros((4 * t_p, 4 * t_p))
     for k in range(t_p):  # row block k: -z_{k+1} + C~ z_k + A~ delta_k + B~ a_k + D~ = 0, z_0 given
@@ -116,7 +117,7 @@ def test_rho_bound_matrix_terms_match_the_linearised_dynamics():
     c_Z = -np.concatenate([C_t @ z0 + D_t] + [D_t] * (t_p - 1))
     assert np.abs(A @ delta + B @ a + C @ np.concatenate(Z) - c_Z).max() < 1e-3
     r = certificate.rho_bound({"s_x": 63.0, "s_y": 12.85, "theta_x": 0.1, "theta_y": 0.05, "L": 0.2}, BOX, CERT["cost"],
-                              t_p, lambda_s=CERT["lambda_s"], **typ)
+                              t_p, lambda_s=CERT["lambda_s"], params=p, **typ)
     sigma_C = np.linalg.svd(C, compute_uv=False).min()  # C is square with a unit diagonal: full rank
     assert r["sigma_min_C"] == pytest.approx(sigma_C, rel=1e-9)
     # A and B have one column per step on disjoint rows: their singular values are ||A~|| and ||B~|| = dt
@@ -126,7 +127,7 @@ def test_rho_bound_matrix_terms_match_the_linearised_dynamics():
 def test_rho_bound_grows_with_the_certified_constants():
     c = {"s_x": 63.0, "s_y": 12.85, "theta_x": 0.1, "theta_y": 0.05, "L": 0.2}
     bound = lambda **k: certificate.rho_bound({**c, **k}, BOX, CERT["cost"], CERT["T_p"], lambda_s=CERT["lambda_s"],
-                                              **CERT["typical"])
+                                              params=PARAMS, **CERT["typical"])
     r = bound()
     assert r["rho_bound"] > 1.0
     assert bound(L=0.4)["L_J"] > r["L_J"] and bound(L=0.4)["rho_bound"] > r["rho_bound"]

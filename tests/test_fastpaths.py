@@ -1,5 +1,5 @@
 """The MPC step's fast paths give the slow paths' plans: closed-form box QPs, reused linearisations, OSQP at ADMM's
-tolerances, the rollout-level surrogate export, residual balancing's dual residual and rho updates (speed: `make bench`)."""
+tolerances, the fused surrogate export (speed: `make bench`)."""
 import copy
 
 import numpy as np
@@ -8,20 +8,19 @@ import torch
 from scipy import sparse
 from test_surrogate import smooth_student
 
-from bench.states import collect
-from core.jobs import UserError
-from core.rollout import SLOTS, T_OBS, chain_rule, ego_xy, rollout_jacobian
-from planner import admm, mpc
+from bench.states import collect, solver_step
+from core.rollout import SLOTS, T_OBS, ego_xy, rollout_jacobian
+from planner import mpc
 from planner.gradients import Surrogate
 from planner.qp import QP, BoxQP, SolverFailure
 from planner.safety import Safety
 from planner.setup import make
 from surrogate import models
-from surrogate.export import export, export_rollout
-from surrogate.network import Fused, JacobianNet, Rollout
+from surrogate.export import export
+from surrogate.network import Fused, JacobianNet
 
-SLOW = ["mpc.box_qp=osqp", "zstep.settings.reuse_radius=0", "zstep.settings.max_iters=2", "mpc.osqp.eps_abs=1e-6", "mpc.osqp.eps_rel=1e-6",
-        "~mpc.osqp.adaptive_rho_interval"]  # the reference: OSQP everywhere, tight, two SQP steps each from a fresh linearisation
+SLOW = ("zstep.settings.reuse_radius=0", "zstep.settings.max_iters=2", "mpc.osqp.eps_abs=1e-6", "mpc.osqp.eps_rel=1e-6",
+        "~mpc.osqp.adaptive_rho_interval")  # the reference: OSQP tight, two SQP steps each from a fresh linearisation
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +40,7 @@ def test_fast_step_gives_the_slow_plan(states, analytic):
     slow = make("two_lane", ["gradients=analytic", *SLOW])[2]
     both = 0
     for st in states:
-        a, b = mpc.mpc_step(fast, st.obs, src, st.warm), mpc.mpc_step(slow, st.obs, src, st.warm)
+        a, b = solver_step()(fast, st.obs, src, st.warm), solver_step(SLOW)(slow, st.obs, src, st.warm)
         assert bool(a.fallback) == bool(b.fallback)
         if a.reason == b.reason == "converged":  # the same fixed point to a few times ADMM's tol_step (1e-3)
             both += 1
@@ -51,18 +50,18 @@ def test_fast_step_gives_the_slow_plan(states, analytic):
 
 def test_box_qp_closed_form_equals_osqp_inside_and_on_the_box(states, analytic):
     _, src, s = analytic
-    prob, _ = mpc.build(s, states[2].obs, src, states[2].warm)
-    P = (prob.Phi_1.P + s.rho * prob.dyn.A.T @ prob.dyn.A).toarray()
+    prob, solvers, _ = mpc.build(s, states[2].obs, src, states[2].warm, solver_step().keywords["zstep"])
+    P = prob.Phi_1.P + s.rho * prob.dyn.A.T @ prob.dyn.A
+    assert np.array_equal(solvers.delta_qp.P, P)  # the Delta-update's QP: P_1 + rho A'A
     tight = {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000, "polishing": True}
     rng = np.random.default_rng(0)
     for scale in (0.01, 300.0):  # unconstrained minimiser inside the box, then mostly outside it
         q = scale * rng.normal(size=len(P))
-        fast, slow = BoxQP(P, q, -0.5, 0.5, tight, True), BoxQP(P, q, -0.5, 0.5, tight, False)
+        fast = BoxQP(P, q, -0.5, 0.5, tight)
         x = fast.solve(q)
-        assert np.abs(x - slow.solve(q)).max() < 1e-6 and np.all(np.abs(x) <= 0.5 + 1e-9)
+        osqp = QP(P, q, sparse.eye(len(P), format="csc"), np.full(len(P), -0.5), np.full(len(P), 0.5), tight).solve()
+        assert np.abs(x - osqp).max() < 1e-6 and np.all(np.abs(x) <= 0.5 + 1e-9)
         assert (fast.qp is None) == (scale < 1.0) == bool(np.all(np.abs(x) < 0.5))  # OSQP only when the box is active
-    fast.set_P(2.0 * P)  # a new rho: the same as a box QP built with it
-    assert np.abs(fast.solve(q) - BoxQP(2.0 * P, q, -0.5, 0.5, tight, False).solve(q)).max() < 1e-6
 
 
 def test_reused_linearisation_is_exact_for_cv_and_second_order_for_a_reacting_predictor(states, analytic):
@@ -91,55 +90,12 @@ def test_reused_linearisation_is_exact_for_cv_and_second_order_for_a_reacting_pr
     assert fresh.offset(Z + d) == 0.0
 
 
-def test_dual_residual_is_the_delta_and_alpha_optimality_gap(states, analytic):
-    _, src, s = analytic
-    st = states[5]
-    prob, start = mpc.build(s, st.obs, src, st.warm)
-    old, _ = admm.admm_step(prob, start)
-    new, _ = admm.admm_step(prob, old)
-    A, B = prob.dyn.A, prob.dyn.B
-    inside = np.all(np.abs(new.Delta) < 0.5) and np.all((new.alpha > -4.0) & (new.alpha < 3.0))
-    assert inside  # with the boxes inactive, the sub-problems' gradients vanish at their own mu
-    gap = np.concatenate([prob.Phi_1.P @ new.Delta + prob.Phi_1.q + A.T @ new.mu,
-                          prob.Phi_2.P @ new.alpha + prob.Phi_2.q + B.T @ new.mu])
-    assert np.linalg.norm(gap) > 1e-3
-    assert admm.dual_residual(prob, old, new) == pytest.approx(np.linalg.norm(gap), rel=1e-5)
-
-
-def test_set_rho_gives_the_problem_built_with_that_rho(states, analytic):
-    _, src, s = analytic
-    st = states[4]
-    prob, start = mpc.build(s, st.obs, src, st.warm)
-    prob.set_rho(37.0)
-    other = make("two_lane", ["gradients=analytic", "mpc.rho=37.0"])[2]
-    ref, _ = mpc.build(other, st.obs, src, st.warm)
-    a, _ = admm.admm_step(prob, start)
-    b, _ = admm.admm_step(ref, start)
-    for f in ("Delta", "alpha", "Z", "mu"):
-        assert np.abs(getattr(a, f) - getattr(b, f)).max() < 1e-6
-
-
-def test_balanced_rho_converges_to_the_fixed_rho_plan(states, analytic):
-    _, src, s = analytic
-    bal = make("two_lane", ["gradients=analytic", "mpc.admm.balance_rho.enabled=true"])[2]
-    for st in states[5:]:
-        a, b = mpc.mpc_step(s, st.obs, src, st.warm), mpc.mpc_step(bal, st.obs, src, st.warm)
-        if a.reason == b.reason == "converged":
-            assert np.abs(a.u - b.u).max() <= 1e-2
-
-
-def small_surrogate(tmp_path):
-    """A random-weight JacobianNet beside a smooth student as the source, exported per window and as a rollout."""
+def test_fused_surrogate_source_matches_the_torch_chain_rule(tmp_path, states):
+    """A random-weight JacobianNet beside a smooth student as the source, exported fused: the planner's source gives
+    their torch values and Jacobians composed per window."""
     torch.manual_seed(1)
     net, source = JacobianNet(T_OBS, SLOTS, 16, 1, "").eval(), smooth_student()
     export(Fused(copy.deepcopy(net), copy.deepcopy(source)), tmp_path / "surrogate.onnx", T_OBS, SLOTS, "student")
-    export_rollout(Rollout(copy.deepcopy(net), copy.deepcopy(source), 8), tmp_path / models.ROLLOUT, T_OBS, SLOTS, 8,
-                   "student")
-    return net, source
-
-
-def test_rollout_export_matches_the_per_window_chain_rule(tmp_path, states):
-    net, source = small_surrogate(tmp_path)
     st = states[3]
     history, ego = st.obs.history, ego_xy(st.warm.Z, 8)
 
@@ -148,30 +104,16 @@ def test_rollout_export_matches_the_per_window_chain_rule(tmp_path, states):
             w = torch.as_tensor(w, dtype=torch.float32)
             return source(w).double().numpy(), net(w).double().numpy()
 
-    values, grads = rollout_jacobian(phi_jac, history, ego)  # the per-window reference, composed in numpy
-    with torch.no_grad():
-        tv, tg = Rollout(net, source, 8)(torch.as_tensor(history[None]).float(), torch.as_tensor(ego[None]).float())
-    assert np.abs(tv[0].numpy() - values).max() < 1e-4 and np.abs(tg[0].numpy() - grads).max() < 1e-5
+    values, grads = rollout_jacobian(phi_jac, history, ego)  # the reference: torch's values and J, composed in numpy
     assert np.abs(grads[:, 1:]).max() > 1e-3  # the others' response to the ego plan is in it
-    one = Surrogate("surrogate", None, models.load(tmp_path, rollout=True, T_p=8), rollout=True)
-    per_window = Surrogate("surrogate", None, models.load(tmp_path), rollout=False)
-    for a, b in zip(one.jacobian(history, ego), per_window.jacobian(history, ego)):
-        assert np.abs(a - b).max() < 1e-5
-    two = one.values(history, np.stack([ego, ego + 0.5]))  # any batch of plans in one call
-    assert np.abs(two[0] - values).max() < 1e-4 and np.abs(two[1] - per_window.values(history, [ego + 0.5])[0]).max() < 1e-4
-    assert np.abs(chain_rule(torch.as_tensor(np.stack([net(torch.zeros(1, T_OBS, SLOTS, 2)).detach().double().numpy()[0]] * 8))
-                             ).numpy() - chain_rule(np.stack([net(torch.zeros(1, T_OBS, SLOTS, 2)).detach().double().numpy()[0]] * 8))
-                  ).max() < 1e-12  # numpy and torch compose alike
-
-
-def test_rollout_export_of_another_horizon_or_missing_is_refused(tmp_path):
-    small_surrogate(tmp_path)
-    with pytest.raises(UserError, match="paper.T_p=6"):
-        models.load(tmp_path, rollout=True, T_p=6)
-    (tmp_path / models.ROLLOUT).unlink()
-    with pytest.raises(UserError, match="surrogate_rollout.onnx not found"):
-        models.load(tmp_path, rollout=True, T_p=8)
-    assert models.load(tmp_path).rollout_session is None  # the per-window path needs no rollout export
+    fused = Surrogate("surrogate", None, models.load(tmp_path, T_OBS, SLOTS - 1))  # no predictor: the export carries the source's phi
+    assert fused.joint  # values come with J in one onnxruntime call, so Safety.trial linearises trial plans
+    got = fused.jacobian(history, ego)  # float32 onnxruntime against float32 torch: J at windows ~1e-5 m apart
+    assert np.abs(got[0] - values).max() < 1e-4 and np.abs(got[1] - grads).max() < 1e-4
+    two = fused.values(history, np.stack([ego, ego + 0.5]))  # a batch of plans; float32 at tens of metres
+    shifted = rollout_jacobian(phi_jac, history, ego + 0.5)[0]
+    assert np.abs(two[0] - values).max() < 1e-3 and np.abs(two[1] - shifted).max() < 1e-3
+    assert np.abs(shifted - values)[:, 1:].max() > 1e-2  # the others respond to the shift: the batch is not one plan
 
 
 def test_crossing_bounds_are_a_solver_failure_not_a_silent_stale_solve():

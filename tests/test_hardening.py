@@ -10,29 +10,31 @@ from hydra.utils import instantiate
 
 from conftest import compose_cfg
 from core.jobs import UserError, guarded, mlflow_run
+from data.world import backfill
 from planner import cli, mpc
-from planner.closed_loop import backfill
 from planner.setup import make, planner_config, setup
 
 
 @pytest.fixture(scope="module")
 def start():
-    """two_lane settings, an observation of its start, a warm plan from one solved step (analytic predictor), the NNMPC step."""
+    """two_lane settings, an observation of its start, a warm plan from one solved step (analytic predictor), the ADMM
+    and NNMPC steps."""
     cfg = planner_config("two_lane", ["gradients=analytic", "method=nnmpc"])
     scenario, source, s = setup(cfg)
     z = scenario.make_world(0).z
     obs = mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2))
-    return s, source, obs, mpc.mpc_step(s, obs, source, None).plan, instantiate(cfg.method.nnmpc)
+    admm_step = instantiate(cfg.solver.step)
+    return s, source, obs, admm_step(s, obs, source, None).plan, admm_step, instantiate(cfg.method.nnmpc)
 
 
 @pytest.mark.parametrize("field", ["z0", "u_prev", "history"])
 @pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
 def test_non_finite_observation_is_a_reported_fallback(start, field, bad):
-    s, source, obs, warm, nnmpc_step = start
+    s, source, obs, warm, admm_step, nnmpc_step = start
     broken = getattr(obs, field).copy()
     broken.flat[1] = bad
     obs = obs._replace(**{field: broken})
-    steps = [lambda w: mpc.mpc_step(s, obs, source, w)]
+    steps = [lambda w: admm_step(s, obs, source, w)]
     if field != "u_prev":  # NNMPC never reads the last input
         steps.append(lambda w: nnmpc_step(s, obs, source, w))
     for step in steps:
@@ -91,7 +93,7 @@ def test_every_job_refuses_an_unwritable_output_folder_in_one_line(job, override
 
 
 def test_braking_fallback_stops_the_ego_and_never_reverses(start):
-    s, source, obs, _, _ = start
+    s, source, obs, *_ = start
     slow = obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 0.3]))  # 0.3 m/s: one step of the full brake would reverse
     result = mpc.fallback(s, slow, source, None, "test")
     assert "braking in lane" in result.fallback

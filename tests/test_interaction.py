@@ -8,7 +8,7 @@ import pytest
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from bench.branches import Pair, execute, heldout_seeds, make_pairs, redraw
+from bench.branches import Pair, execute, heldout_seeds, make_pairs
 from bench.interaction import first_order_response, intervals, load_source, rollout_response, run, scores
 from conftest import compose_cfg
 from core.jobs import UserError
@@ -68,7 +68,7 @@ def test_cv_gives_zero_and_analytic_its_known_response(tmp_path):
     cv, analytic = load_source("cv", tmp_path), load_source("analytic", tmp_path)
     truth = np.stack([analytic_by_hand(analytic.predictor, history, e) for e in (ego_a, ego_b)])
     xy = np.concatenate([np.stack([ego_a, ego_b])[:, :, None], truth], axis=2)
-    pair = Pair(0, 0, "push", history, np.zeros((2, T_P, 2)), xy, None)
+    pair = Pair(0, 0, "push", history, np.arange(SLOTS), np.zeros((2, T_P, 2)), xy, None)
     assert np.abs(pair.response).max() > 0.2  # the constructed branch has a real response
 
     assert np.array_equal(rollout_response(cv, pair), np.zeros((T_P, 4, 2)))
@@ -169,7 +169,7 @@ def test_branch_pairs_share_the_hidden_decisions(pairs):
         assert np.array_equal(p.ego[0], execute(p.world, p.controls[0])[0][:, 0])
     world = pairs[0].world
     rng = np.random.default_rng(0)
-    draws = [redraw(world, rng) for _ in range(20)]
+    draws = [world.redrawn(rng) for _ in range(20)]
     assert all(d.drivers == world.drivers for d in draws)
     assert any(not np.array_equal(d.will_yield, world.will_yield) for d in draws)
     assert all(not d.will_yield[0] for d in draws)  # the ego never yields to itself

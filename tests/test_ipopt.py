@@ -14,12 +14,11 @@ from scipy import sparse
 from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import b_i, ego_xy, rollout
-from distill.analytic import Analytic
+from data.world import backfill
 from distill.models import StudentPredictor, TorchPredictor
 from distill.student import GeluStudent
 from planner import cli, mpc
-from planner.closed_loop import backfill
-from planner.gradients import CentralDifferences, ExactLocal
+from planner.gradients import ExactLocal
 from planner.setup import build, make, planner_config
 
 ca = pytest.importorskip("casadi")
@@ -69,7 +68,7 @@ def test_convex_instance_ipopt_and_osqp_agree(options):
     Phi = mpc.costs(s, obs.u_prev)
     lo, hi = mpc.state_box(s)
     n = s.T_p
-    G = sparse.vstack([sparse.hstack([dyn.A, dyn.B, dyn.C]), sparse.eye(6 * n)], format="csc")
+    G = sparse.vstack([sparse.csc_matrix(np.hstack([dyn.A, dyn.B, dyn.C])), sparse.eye(6 * n)], format="csc")
     qp = osqp.OSQP()
     qp.setup(sparse.triu(sparse.block_diag([p.P for p in Phi]), format="csc"), np.concatenate([p.q for p in Phi]), G,
              np.concatenate([-dyn.D, np.full(n, s.delta_box[0]), np.full(n, s.a_box[0]), lo]),
@@ -86,8 +85,8 @@ def test_convex_instance_ipopt_and_osqp_agree(options):
 @pytest.mark.parametrize("predictor", ["analytic", "student"])
 def test_plan_meets_dynamics_and_safety_on_the_numpy_rollout(options, student, predictor):
     # the check of the nonlinear bicycle's rollout off: this tests the NLP's own solution, not the linearisation
-    scenario, _, s = make("two_lane", ["gradients=analytic", "mpc.check_tol=100"])
-    source = ExactLocal(predictor, Analytic() if predictor == "analytic" else student)
+    scenario, analytic, s = make("two_lane", ["gradients=analytic", "mpc.check_tol=100"])
+    source = analytic if predictor == "analytic" else ExactLocal(predictor, student)
     obs = observation(scenario)
     r = ipopt_step(s, obs, source, None, options)
     assert not r.fallback and r.reason == "Solve_Succeeded"
@@ -103,7 +102,7 @@ def test_plan_meets_dynamics_and_safety_on_the_numpy_rollout(options, student, p
 
 def test_sources_without_an_expression_are_one_clear_error():
     with pytest.raises(UserError, match=r"gradients=fd supplies its own derivatives"):
-        expression(CentralDifferences("fd", Analytic(), 1e-2))
+        expression(build(planner_config("two_lane", ["gradients=fd", "predictor=analytic"]).gradients))
     with pytest.raises(UserError, match=r"teacher predictor .* l4casadi"):
         expression(ExactLocal("teacher", TorchPredictor("teacher", torch.nn.Linear(2, 2))))
 

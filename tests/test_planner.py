@@ -11,9 +11,10 @@ from test_configs import drift
 from bench.branches import ego_controls, execute
 from core.jobs import CONF_DIR, UserError
 from core.rollout import ego_xy
+from data import perception
+from data.world import backfill
 from distill import models as distill_models
 from planner import admm, cli, cost, dynamics, mpc
-from planner.closed_loop import backfill
 from planner.gradients import Autodiff, CentralDifferences
 from planner.qp import QP
 from planner.safety import Safety
@@ -31,25 +32,31 @@ def two_lane():
     return make("two_lane", ["gradients=cv"])
 
 
+@pytest.fixture(scope="module")
+def sqp():
+    """The default Z-step (conf/zstep/sqp.yaml, a partial), as conf/solver/admm.yaml binds it to mpc_step."""
+    return build(planner_config("two_lane").zstep)
+
+
 def observe(z, u_prev=(0.0, 0.0)):
     """An observation of states z (M, 4) with a constant-velocity back-filled history."""
     return mpc.Observation(z[0].copy(), np.array(u_prev), backfill(z, 8, 0.2))
 
 
-def test_admm_converges_to_the_stacked_qp_when_safety_is_inactive(two_lane):
+def test_admm_converges_to_the_stacked_qp_when_safety_is_inactive(two_lane, sqp):
     scenario, cv, s = two_lane
     z = scenario.make_world(0).z
     z[1:, 0] += 300.0  # the others far ahead: every b_i is slack
     obs = observe(z, (0.05, 0.3))
-    prob, start = mpc.build(s, obs, cv, None)
-    st, solve = admm.admm_solve(prob, start, max_iters=3000, tol_F=1e-7, tol_step=1e-7)
+    prob, solvers, start = mpc.build(s, obs, cv, None, sqp)
+    st, solve = admm.admm_solve(prob, solvers, start, max_iters=3000, tol_F=1e-7, tol_step=1e-7)
     assert solve.reason == "converged" and solve.F_norm < 1e-6
     # The same MPC as one QP over x = [Delta; alpha; Z]: J, F = 0, the same boxes.
     dyn, T = prob.dyn, s.T_p
     P = sparse.block_diag([prob.Phi_1.P, prob.Phi_2.P, prob.Phi_3.P], format="csc")
     q = np.concatenate([prob.Phi_1.q, prob.Phi_2.q, prob.Phi_3.q])
     lo, hi = mpc.state_box(s)
-    G = sparse.vstack([sparse.hstack([dyn.A, dyn.B, dyn.C]), sparse.eye(6 * T)], format="csc")
+    G = sparse.vstack([sparse.csc_matrix(np.hstack([dyn.A, dyn.B, dyn.C])), sparse.eye(6 * T)], format="csc")
     l = np.concatenate([-dyn.D, np.full(T, s.delta_box[0]), np.full(T, s.a_box[0]), lo])
     u = np.concatenate([-dyn.D, np.full(T, s.delta_box[1]), np.full(T, s.a_box[1]), hi])
     x = QP(P, q, G, l, u, {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000, "polishing": True}).solve()
@@ -99,15 +106,15 @@ def test_safety_gradient_matches_central_differences(two_lane, gradients, predic
     assert np.abs(Jb - Jfd).max() <= tol * max(1.0, np.abs(Jfd).max())
 
 
-def test_nan_observation_falls_back(two_lane):
+def test_nan_observation_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
     bad = obs._replace(history=np.where(np.arange(obs.history.size).reshape(obs.history.shape) == 7, np.nan, obs.history))
-    result = mpc.mpc_step(s, bad, cv, None)
+    result = mpc.mpc_step(s, bad, cv, None, sqp)
     assert "non-finite observation" in result.fallback and np.all(np.isfinite(result.u))
 
 
-def test_osqp_failure_falls_back(two_lane, monkeypatch):
+def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
     real = osqp.OSQP.solve
@@ -118,7 +125,7 @@ def test_osqp_failure_falls_back(two_lane, monkeypatch):
         return result
 
     monkeypatch.setattr(osqp.OSQP, "solve", failing)
-    result = mpc.mpc_step(s, obs, cv, None)
+    result = mpc.mpc_step(s, obs, cv, None, sqp)
     assert "solver failure (OSQP primal infeasible)" in result.fallback and np.all(np.isfinite(result.u))
 
 
@@ -182,8 +189,8 @@ def test_penalty_mode_drives_and_its_z_step_objective_carries_minus_lambda_s_sum
     assert len(ep.rows) == 3 and np.isfinite(ep.controls).all() and all(r["iterations"] > 0 for r in ep.rows)
     z = scenario.make_world(0).z
     z[0, 1], z[0, 2] = 1.6, 0.15  # nudging towards the platoon: b_i varies with the plan
-    prob, st = mpc.build(s, observe(z), src, None)
-    zstep, rng = prob.zstep, np.random.default_rng(2)
+    prob, solvers, st = mpc.build(s, observe(z), src, None, build(cfg.zstep))
+    zstep, rng = solvers.zstep, np.random.default_rng(2)
     mu, c_Z = rng.normal(size=4 * s.T_p), prob.dyn.C @ st.Z + rng.normal(0, 0.1, 4 * s.T_p)
     lin_q = prob.Phi_3.q + prob.dyn.C.T @ (mu - s.rho * c_Z)
     objective = lambda Z: (prob.Phi_3(Z) + mu @ (prob.dyn.C @ Z) + s.rho / 2 * np.sum((prob.dyn.C @ Z - c_Z) ** 2)
@@ -203,7 +210,7 @@ def group_options(group):
 
 @pytest.mark.parametrize("override", [f"{g}={o}" for g in ("gradients", "predictor", "zstep", "method") for o in group_options(g)])
 def test_every_planner_target_agrees_with_its_code_defaults(override):
-    problems, checked = drift(planner_config("two_lane", [override]))
+    problems, checked, _ = drift(planner_config("two_lane", [override]), f"planner {override}")
     assert checked >= 5 and not problems, "\n".join(problems)
 
 
@@ -211,7 +218,7 @@ def test_strategy_groups_build_the_named_classes():
     cfg = planner_config("two_lane", ["gradients=fd", "zstep=pygranso", "method=both", "gradients.h=0.05", "predictor=analytic"])
     assert isinstance(build(cfg.gradients), CentralDifferences) and build(cfg.gradients).h == 0.05
     assert build(cfg.gradients).predictor.name == "analytic"
-    zstep = build(cfg.mpc.zstep)
+    zstep = build(cfg.solver.step).keywords["zstep"]  # the ADMM step gets the chosen Z-step beside its Settings
     assert zstep.func.name == "pygranso" and zstep.keywords["settings"].maxit == cfg.zstep.settings.maxit
     assert list(cfg.method) == ["admm", "nnmpc"] and build(cfg.method.nnmpc).keywords["lengths"] == [8.0, 12.0, 16.0, 24.0, 32.0]
     assert make("two_lane", ["gradients=cv"])[2].R == pytest.approx(3.95)  # r + r_i + eps from conf/paper/table1.yaml
@@ -222,17 +229,18 @@ def test_oracle_replays_the_worlds_own_response_and_leaves_the_world_untouched()
 
     def nudge(world, y, steps):
         """execute() of the ego steering to y (m) at constant speed for `steps` in a deep copy of `world`."""
-        z0 = world.z[0]
+        z0 = world.states()[0]
         return execute(world, ego_controls(z0, np.full(steps, y), z0[3], world.params, k_y=0.6, a_bounds=(0.0, 0.0)))
 
     world = nudge(scenario.make_world(0), 2.5, 5)[1]  # the ego leaning into the cooperative car's lane
-    z, t = world.z.copy(), world.t
+    z, t = world.states(), world.t
     true = np.stack([nudge(world, y, 8)[0] for y in (0.0, 3.0)])  # back off / push on
-    oracle.predictor.world = world
-    pred = oracle.values(backfill(z, 8, 0.2), true[:, :, 0])
+    seen = perception.observe(world, 4, 8)
+    oracle.predictor.world, oracle.predictor.ids = world, seen.ids
+    pred = oracle.values(seen.history, true[:, :, 0])
     assert np.abs(pred - true).max() < 1e-6
-    assert (true[1] - true[0])[-1, 3, 0] < -0.5  # a real response: the yielder falls back by more than half a metre
-    assert np.array_equal(world.z, z) and world.t == t
+    assert (true[1] - true[0])[-1, 3, 0] < -0.4  # a real response: the yielder falls back by more than 40 cm
+    assert np.array_equal(world.states(), z) and world.t == t
 
 
 def test_oracle_outside_the_reactive_closed_loop_is_one_line_error():

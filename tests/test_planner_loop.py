@@ -8,8 +8,8 @@ import mlflow
 import numpy as np
 
 from conftest import compose_cfg
-from planner import cli, closed_loop, mpc
-from planner.setup import make
+from planner import cli, closed_loop
+from planner.setup import build, planner_config, setup
 
 
 def plan(tmp_path, *overrides):
@@ -35,11 +35,12 @@ def test_constant_velocity_cannot_open_the_gap(tmp_path):
 
 
 def test_start_in_collision_is_reported(tmp_path):
-    scenario, source, s = make("two_lane", ["gradients=cv"])
+    cfg = planner_config("two_lane", ["gradients=cv"])
+    (scenario, source, s), step = setup(cfg), build(cfg.solver.step)
     world = scenario.make_world(0)
     world.z[0, :2] = world.z[2, :2] - [0.5, 1.4]  # overlapping car 2
-    ep = closed_loop.drive(world, lambda obs, warm: mpc.mpc_step(s, obs, source, warm), source, scenario.x_ref,
-                           scenario.target_lane, T_obs=8, max_steps=5, others="reactive")
+    ep = closed_loop.drive(world, lambda obs, warm: step(s, obs, source, warm), source, scenario.x_ref,
+                           scenario.target_lane, T_obs=8, max_steps=5, others="reactive", n_slots=4)
     assert ep.collided and "start in collision" in ep.notes[0]
     assert any(r["fallback"] for r in ep.rows) and np.isfinite(ep.controls).all()
 

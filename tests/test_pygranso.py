@@ -7,10 +7,10 @@ import pytest
 
 from conftest import compose_cfg
 from core.jobs import UserError
+from data.world import backfill
 from planner import admm, cli, closed_loop, mpc
-from planner.closed_loop import backfill
 from planner.pygranso_zstep import import_pygranso, linear_term
-from planner.setup import build, make, planner_config
+from planner.setup import build, make, planner_config, setup
 
 SMALL = ["paper.T_p=2"]  # a small instance: two steps
 
@@ -29,14 +29,14 @@ def zstep(*overrides):
     return build(planner_config("two_lane", [*SMALL, *overrides]).zstep)
 
 
-def z_problem(s, obs, source):
-    """A Z-update after three ADMM sweeps: the Problem and (Z_k, mu, c_Z)."""
-    prob, st = mpc.build(s, obs, source, None)
+def z_problem(s, obs, source, z_step):
+    """A Z-update after three ADMM sweeps with Z-step z_step (a partial): the Problem, its Solvers and (Z_k, mu, c_Z)."""
+    prob, solvers, st = mpc.build(s, obs, source, None, z_step)
     for _ in range(3):
-        st, _ = admm.admm_step(prob, st)
-    st = st._replace(Delta=admm.delta_update(prob, st))
-    st = st._replace(alpha=admm.alpha_update(prob, st))
-    return prob, (st.Z, st.mu, prob.dyn.C @ st.Z - prob.dyn.F(st.Delta, st.alpha, st.Z))
+        st, _ = admm.admm_step(prob, solvers, st)
+    st = st._replace(Delta=admm.delta_update(prob, solvers, st))
+    st = st._replace(alpha=admm.alpha_update(prob, solvers, st))
+    return prob, solvers, (st.Z, st.mu, prob.dyn.C @ st.Z - prob.dyn.F(st.Delta, st.alpha, st.Z))
 
 
 @pytest.mark.parametrize("gradients,predictor", [("analytic", "auto"), ("teacher", "analytic")])
@@ -44,13 +44,11 @@ def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
     pytest.importorskip("pygranso")
     s, obs, _ = small
     source = make("two_lane", [f"gradients={gradients}", *([f"predictor={predictor}"] if predictor != "auto" else [])])[1]
-    prob, (Z, mu, c_Z) = z_problem(s, obs, source)
-    lo, hi = mpc.state_box(s)
-    safety = prob.zstep.safety
+    prob, solvers, (Z, mu, c_Z) = z_problem(s, obs, source, zstep())
+    safety = solvers.zstep.safety
     sqp = zstep("zstep=sqp", "zstep.settings.max_iters=100", "zstep.settings.tol=1e-9")(
-        prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, {**s.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
-    pg = zstep("zstep=pygranso", "zstep.settings.maxit=100", "zstep.settings.opt_tol=1e-7")(
-        prob.Phi_3, prob.dyn.C, s.rho, lo, hi, safety, s.osqp)
+        prob, safety, {**s.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
+    pg = zstep("zstep=pygranso", "zstep.settings.maxit=100", "zstep.settings.opt_tol=1e-7")(prob, safety, s.osqp)
     Z_sqp, _, _ = sqp(Z, mu, c_Z)
     Z_pg, _, info = pg(Z, mu, c_Z)
     f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.rho, mu, c_Z))
@@ -64,14 +62,15 @@ def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
 def test_termination_reason_in_step_info_and_per_step_log(small):
     pytest.importorskip("pygranso")
     _, obs, scenario = small
-    _, source, s = make("two_lane", ["gradients=analytic", "zstep=pygranso", "zstep.settings.maxit=3",
-                                     "mpc.admm.max_iters=2", *SMALL])
-    prob, (Z, mu, c_Z) = z_problem(s, obs, source)
-    _, _, info = prob.zstep(Z, mu, c_Z, None)
+    cfg = planner_config("two_lane", ["gradients=analytic", "zstep=pygranso", "zstep.settings.maxit=3",
+                                      "mpc.admm.max_iters=2", *SMALL])
+    (_, source, s), admm_step = setup(cfg), build(cfg.solver.step)
+    _, solvers, (Z, mu, c_Z) = z_problem(s, obs, source, admm_step.keywords["zstep"])
+    _, _, info = solvers.zstep(Z, mu, c_Z, None)
     assert info["termination"] == 4 and info["termination_reason"] == "pygranso 4: max iterations (maxit)"
-    step = lambda o, warm: mpc.mpc_step(s, o, source, warm)
+    step = lambda o, warm: admm_step(s, o, source, warm)
     ep = closed_loop.drive(scenario.make_world(0), step, source, scenario.x_ref, scenario.target_lane, T_obs=8, max_steps=1,
-                           others="reactive")
+                           others="reactive", n_slots=4)
     assert ep.rows[0]["zstep_stop"].startswith("pygranso ") and not ep.rows[0]["fallback"]
 
 

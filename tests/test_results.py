@@ -1,13 +1,17 @@
 """`results`: the tiny preset runs every job from scratch and writes Markdown tables and figures whose numbers are the
-MLflow runs'; planner seeds that were the dataset's are refused."""
+MLflow runs' and the batches' episodes'; planner seeds that were the dataset's are refused."""
+import csv
+import re
+from pathlib import Path
+
 import mlflow
 import numpy as np
 import pytest
+from test_batch import wilson_by_roots
 
 from bench import results
 from conftest import compose_cfg
 from data.dataset import episode_seeds
-from planner.report import wilson
 
 
 def test_planner_seeds_that_were_dataset_episodes_are_refused(tmp_path, capsys):
@@ -43,11 +47,12 @@ def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tmp_path):
             r = mine[(mine["params.scenario"] == "random") & (mine["params.gradients"] == source)
                      & (mine["params.method"] == method)]
             assert len(r) == 1 and r["metrics.episodes"].iloc[0] == 4
-            merged = r["metrics.merged"].iloc[0]
-            lo, hi = wilson(4 * merged, 4)
-            shown = f"{100 * merged:.1f}" + (f" [{100 * lo:.1f}, {100 * hi:.1f}]" if hi > lo else "")
-            assert cell(md, source, method.upper(), 3) == shown
-            assert cell(md, source, method.upper(), 2) == "1 x 4"
+            episodes = csv.DictReader(open(next(Path(r["params.out_dir"].iloc[0]).glob(f"episodes_{method}_*.csv"))))
+            merged = [float(e["merged"]) for e in episodes if e["crash"] == "0"]
+            k, n = sum(merged), len(merged)
+            shown = [float(x) for x in re.findall(r"\d+\.\d", cell(md, source, method.upper(), 3))]  # rate [lo, hi], %
+            assert shown == pytest.approx([100 * k / n, *(100 * np.array(wilson_by_roots(k, n)))], abs=0.051)
+            assert cell(md, source, method.upper(), 2) == f"1 x {n}"
     distill = mlflow.search_runs(experiment_names=["distill"])
     teacher = distill[(distill["params.models_dir"].str.startswith(work)) & (distill["params.model"] == "teacher")]
     assert len(teacher) == 1

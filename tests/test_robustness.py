@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
     ("planner", "paper.rho=abc", "paper.rho=abc: must be a number > 0"),
     ("planner", "paper.rho=-5", "paper.rho=-5: must be a number > 0"),
     ("planner", "mpc.rho=0", "mpc.rho=0: must be a number > 0"),
-    ("planner", "T_obs=1", "T_obs=1: must be an integer >= 2"),
+    ("planner", "T_obs=1", "T_obs=1: must be an integer in [2, 21]"),
     ("planner", "seed=-1", "seed=-1: must be an integer in [0, 4294967295]"),
     ("planner", "max_steps=0", "max_steps=0: must be an integer >= 1"),
     ("planner", "episodes=-2", "episodes=-2: must be an integer >= 0"),
@@ -45,7 +45,7 @@ REPO = Path(__file__).resolve().parents[1]
     ("distill", "trainer.max_epochs=abc", "trainer.max_epochs=abc: must be an integer >= 1"),
     ("distill", "model.task.lr=nan", "model.task.lr=nan: must be a number > 0"),
     ("distill", "eval_split=dev", "eval_split=dev: must be one of train, val, test"),
-    ("surrogate", "source=cv", "source=cv: must be one of teacher, student"),
+    ("surrogate", "source=cv", "source=cv: must be one of student, teacher"),
     ("surrogate", "data.batch_size=0", "data.batch_size=0: must be an integer >= 1"),
 ])
 def test_bad_config_values_are_one_line_naming_key_value_and_range(config, override, message):
@@ -270,7 +270,7 @@ NO_GROUPS = ["none: every setting is a key below"]
 
 
 @pytest.mark.parametrize("command,groups,foreign", [
-    ("make-dataset", ["dataset: large | small | tiny  (now small)", "scenario: random | three_lane | two_lane  (now random)"],
+    ("make-dataset", ["dataset: large | small | tiny  (now small)", "scenario: dense | random | three_lane | two_lane  (now random)"],
      ["model:", "trainer:"]),
     ("distill", ["model: student | student_certifiable | teacher  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
     ("surrogate", ["paper: table1  (now table1)"], ["dataset:", "model:", "scenario:", "trainer:"]),

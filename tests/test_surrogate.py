@@ -62,7 +62,7 @@ def test_onnx_matches_torch_and_records_its_source(tmp_path):
     W = planning_windows(2)
     net.fit_normalisation(W, jacobians.autodiff(TorchPredictor("student", smooth_student()), W))
     source = smooth_student()
-    surrogate = models.load(exported(tmp_path, Fused(net, source)))
+    surrogate = models.load(exported(tmp_path, Fused(net, source)), T_OBS, SLOTS - 1)
     with torch.no_grad():
         J, nxt = net(torch.as_tensor(W, dtype=torch.float32)).numpy(), source(torch.as_tensor(W, dtype=torch.float32)).numpy()
     assert surrogate.source == "student" and surrogate.fused
@@ -74,19 +74,19 @@ def test_onnx_matches_torch_and_records_its_source(tmp_path):
 
 def test_missing_file_names_the_command(tmp_path):
     with pytest.raises(UserError, match=r"surrogate.onnx not found: run `surrogate`"):
-        models.load(tmp_path)
+        models.load(tmp_path, T_OBS, SLOTS - 1)
 
 
 def test_corrupt_file_is_refused_with_the_expected_shapes(tmp_path):
     (tmp_path / "surrogate.onnx").write_bytes(b"not a protobuf" * 10)
     with pytest.raises(UserError, match=r"surrogate.onnx is not a valid ONNX model.*window \(B, 8, 5, 2\) -> J \(B, 10, 80\)"):
-        models.load(tmp_path)
+        models.load(tmp_path, T_OBS, SLOTS - 1)
 
 
 def test_wrong_shape_model_is_refused(tmp_path):
     wrong = jacobian_net(SLOTS - 1, hidden=8, depth=1)  # a surrogate for four cars, not five
     with pytest.raises(UserError, match=r"surrogate.onnx has inputs .*\[8, 4, 2\].*expected window \(B, 8, 5, 2\)"):
-        models.load(exported(tmp_path, wrong, SLOTS - 1))
+        models.load(exported(tmp_path, wrong, SLOTS - 1), T_OBS, SLOTS - 1)
 
 
 def job_cfg(tmp_path, tiny_dataset, *overrides):
@@ -109,7 +109,7 @@ def test_trained_surrogate_beats_the_mean_and_constant_velocity_jacobians(tmp_pa
     assert m["react_rel_err"] < 0.8 * m["react_rel_err_mean"]  # the part the predictor contributes
     assert m["grad_rel_err"] < m["grad_rel_err_mean"] and m["grad_cosine"] > m["grad_cosine_cv"]
     assert m["onnx_max_abs_err"] < 1e-4
-    assert models.load(tmp_path).source == "student"
+    assert models.load(tmp_path, T_OBS, SLOTS - 1).source == "student"
     runs = mlflow.search_runs(experiment_names=["surrogate"], filter_string="params.source = 'student'")
     assert len(runs) >= 1 and "metrics.grad_cosine" in runs
 

@@ -7,7 +7,7 @@ from conftest import compose_cfg
 from data.dataset import rollout
 from data.drivers import IDMDriver
 from data.policies import ProbePolicy
-from data.world import Road, World, overlap
+from data.world import World, overlap
 
 
 def scenario(name, **overrides):
@@ -15,14 +15,17 @@ def scenario(name, **overrides):
                        _convert_="all")
 
 
+TWO_LANE = scenario("two_lane")  # its road, bicycle and b_max, read only
+
+
 def test_idm_equilibrium_gap_is_a_rest_point_and_is_reached():
     d = IDMDriver(v0=7.0, T=0.4, s0=1.2)
     s_eq = d.equilibrium_gap(5.0)
     assert d.acceleration(5.0, s_eq, 5.0) == pytest.approx(0.0, abs=1e-9)
-    road = Road(lanes=2)
+    road = TWO_LANE.road
     leader = IDMDriver(v0=5.0)
     z = np.array([[-200.0, 0.0, 0.0, 0.0], [50.0, 4.0, 0.0, 5.0], [30.0, 4.0, 0.0, 5.0]])  # ego parked far behind
-    world = World(road, z, [leader, d], np.zeros(3, bool))
+    world = World(road, z, [leader, d], np.zeros(3, bool), TWO_LANE.b_max, TWO_LANE.params)
     for _ in range(600):
         world.step([0.0, 0.0])
     gap = world.z[1, 0] - world.z[2, 0] - road.car_length
@@ -39,11 +42,12 @@ def test_plain_traffic_never_collides():
 
 
 def test_overlap_detects_touching_bodies_only():
-    road = Road()
+    road = TWO_LANE.road
+    length, width = road.car_length, road.car_width
     a = np.array([0.0, 0.0, 0.0, 0.0])
-    assert overlap(a, np.array([3.5, 0.0, 0.0, 0.0]), road)
-    assert not overlap(a, np.array([3.7, 0.0, 0.0, 0.0]), road)
-    assert not overlap(a, np.array([0.0, 1.7, 0.0, 0.0]), road)
+    assert overlap(a, np.array([length - 0.1, 0.0, 0.0, 0.0]), road)
+    assert not overlap(a, np.array([length + 0.1, 0.0, 0.0, 0.0]), road)
+    assert not overlap(a, np.array([0.0, width + 0.1, 0.0, 0.0]), road)
     assert overlap(a, np.array([2.0, 1.5, 0.3, 0.0]), road)
 
 
@@ -85,7 +89,7 @@ def test_three_lane_yielder_moves_left_when_nudged():
 def yielder_world(ego_y, dx=8.0, **driver):
     """Ego standing dx m ahead of one yielding car (lane 1), at lateral position ego_y (m)."""
     z = np.array([[dx, ego_y, 0.0, 0.0], [0.0, 4.0, 0.0, 5.0]])
-    return World(Road(lanes=2), z, [IDMDriver(**driver)], np.array([False, True]))
+    return World(TWO_LANE.road, z, [IDMDriver(**driver)], np.array([False, True]), TWO_LANE.b_max, TWO_LANE.params)
 
 
 def test_response_follows_the_encroachment_depth_with_a_first_order_lag():

@@ -1,0 +1,189 @@
+"""The clairvoyant ceiling: per world, the fastest courteous merge that a search over ego strategies finds on copies of
+the true world (true hidden decisions), and the same search with every driver made stubborn (`never_yield`).
+
+What it searches: a family of gap-targeting feedback policies (GapPolicy). Each picks one gap of the target lane (the
+gap beside the ego or up to `gaps` gaps ahead or behind), tracks the gap's middle with a speed loop, leans into the
+target lane to one of several depths once near the middle, to ask the gap's follower to yield, and enters once both
+bumper clearances reach a threshold; in the target lane it follows its leader by IDM. Every policy is rolled out in a
+copy of the world until it has merged and kept `settle` more steps without anyone braking harder than b_safe, or fails
+(a collision, braking above b_safe, the lane's end, max_steps); a rollout that can no longer beat the best merge found so
+far stops early. Each copy drives its own drivers: the world never follows a plan. A diagnostic: it knows what no
+planner can (the hidden decisions, by trial), so no planner should ever beat it on a world.
+"""
+import itertools
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import hydra
+import mlflow
+import numpy as np
+import pandas as pd
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from joblib import Parallel, delayed
+from omegaconf import DictConfig
+
+from core import stats, validate
+from core.jobs import CONF_DIR, UserError, atomic_file, guarded, mlflow_run, writable
+from data import outcomes
+from data.bicycle import BicycleParams
+from data.drivers import IDMDriver
+from data.protocol import World
+from data.world import steer_to
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GapPolicy:
+    """Aim at a target-lane gap, lean in to ask for room, enter when both clearances allow; SI units."""
+
+    y_ref: float  # target lane centre (m)
+    x_ref: float  # the ego's lane ends here (m)
+    gap: int  # 0: the gap the ego is beside at the start, +k: k gaps ahead, -k: k gaps behind
+    y_lean: float  # lateral position held while asking for room (m)
+    clearance: float  # bumper clearance to both gap cars needed to enter (m)
+    car_length: float  # m
+    params: BicycleParams
+    align: float = 3.0  # lean only within this distance of the gap's middle (m)
+    k_x: float = 0.5  # speed set-point per metre from the gap's middle (1/s)
+    k_v: float = 1.5  # speed loop gain (1/s)
+    a_bounds: tuple = (-4.0, 2.0)  # the ego's acceleration limits (m/s^2)
+    follow: IDMDriver = field(default_factory=lambda: IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0))  # in the target lane
+
+    def pick(self, z):
+        """(front id or None, back id or None): this policy's gap among the target-lane cars of states z (M, 4)."""
+        ids = np.flatnonzero(np.abs(z[1:, 1] - self.y_ref) < 2.0) + 1
+        ids = ids[np.argsort(-z[ids, 0])]  # front to back
+        k = int(np.sum(z[ids, 0] > z[0, 0])) - self.gap  # gap k lies between ids[k-1] and ids[k]
+        return (int(ids[k - 1]) if 0 < k <= len(ids) else None), (int(ids[k]) if 0 <= k < len(ids) else None)
+
+    def __call__(self, z, target):
+        """Control [delta (rad), a (m/s^2)] in states z (M, 4) towards the gap target = (front id, back id)."""
+        ego, (front, back) = z[0], target
+        x_front = z[front, 0] if front is not None else ego[0] + 60.0
+        x_back = z[back, 0] if back is not None else ego[0] - 60.0
+        v_gap = float(np.mean([z[i, 3] for i in target if i is not None] or [ego[3]]))
+        room_front, room_back = x_front - ego[0] - self.car_length, ego[0] - x_back - self.car_length
+        if abs(ego[1] - self.y_ref) < 1.0:  # in: follow the leader
+            a, y = (self.follow.acceleration(ego[3], room_front, z[front, 3]) if front is not None
+                    else self.follow.acceleration(ego[3])), self.y_ref
+        else:
+            middle = 0.5 * (x_front + x_back)
+            v_des = min(v_gap + self.k_x * (middle - ego[0]), np.sqrt(5.0 * max(0.0, self.x_ref - 2.0 - ego[0])))
+            a = self.k_v * (v_des - ego[3])  # the square root: stop before the lane ends at 2.5 m/s^2
+            if min(room_front, room_back) >= self.clearance:
+                y = self.y_ref
+            else:
+                y = self.y_lean if abs(middle - ego[0]) <= self.align else 0.0
+        return np.array([steer_to(ego, y, self.params), float(np.clip(a, *self.a_bounds))])
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A rollout's result: courteous merge or not, t_merge (steps; max_steps if none), the braking it imposed (m/s^2)."""
+
+    courteous: bool
+    t_merge: int
+    b_imposed: float
+    policy: str
+
+
+def rollout(world: World, policy: GapPolicy, y_ref, x_ref, merge_tol, b_safe, max_steps, settle, best=None) -> Outcome:
+    """Drive a copy of `world` with `policy`; stops at failure, after `settle` steps past the merge, or once it cannot
+    merge before step `best`."""
+    w = world.copy()
+    z = w.states()
+    target = policy.pick(z)
+    states, t_merge, name = [z], None, f"gap {policy.gap:+d}, lean {policy.y_lean} m, clearance {policy.clearance} m"
+    limit = max_steps if best is None else min(max_steps, best - 1)
+    for k in range(1, max_steps + 1):
+        hits = w.step(policy(z, target))
+        z = w.states()
+        states.append(z)
+        b = outcomes.b_imposed_max(states[-2:], w.params.dt)
+        if any(0 in pair for pair in hits) or b > b_safe or (t_merge is None and (z[0, 0] >= x_ref or k > limit)):
+            return Outcome(False, max_steps, outcomes.b_imposed_max(states, w.params.dt), name)
+        if t_merge is None and abs(z[0, 1] - y_ref) <= merge_tol:
+            t_merge = k
+        if t_merge is not None and k >= t_merge + settle:
+            break
+    ok = t_merge is not None
+    return Outcome(ok, t_merge if ok else max_steps, outcomes.b_imposed_max(states, w.params.dt), name)
+
+
+def policies(scenario, search) -> list[GapPolicy]:
+    """The searched strategies: every gap within search.gaps of the ego's, every lean depth and clearance."""
+    gaps = range(-search.gaps, search.gaps + 1)
+    return [GapPolicy(scenario.y_ref, scenario.x_ref, g, y, c, scenario.road.car_length, scenario.params)
+            for g, y, c in itertools.product(gaps, search.y_lean, search.clearance)]
+
+
+def search_world(world: World, scenario, cfg) -> Outcome:
+    """The fastest courteous merge over policies() in copies of `world` (or the failure with the least imposed braking)."""
+    best = None
+    for p in sorted(policies(scenario, cfg.search), key=lambda p: abs(p.gap)):  # near gaps first: early good bounds
+        o = rollout(world, p, scenario.y_ref, scenario.x_ref, cfg.merge_tol, scenario.b_safe, cfg.max_steps, cfg.search.settle,
+                    best.t_merge if best is not None and best.courteous else None)
+        if o.courteous and (best is None or not best.courteous or o.t_merge < best.t_merge):
+            best = o
+        elif best is None or (not best.courteous and not o.courteous and o.b_imposed < best.b_imposed):
+            best = o
+    return best
+
+
+def ceiling(scenario, cfg, seed: int) -> dict:
+    """One world's row: the search with its true hidden decisions and with every driver stubborn."""
+    world = scenario.make_world(seed)
+    true = search_world(world, scenario, cfg)
+    stubborn = search_world(world.with_decisions(np.zeros(len(world.states()), bool)), scenario, cfg)
+    return {"seed": seed, "ceiling_courteous": float(true.courteous), "ceiling_t_merge": float(true.t_merge),
+            "ceiling_b_imposed": true.b_imposed, "ceiling_policy": true.policy,
+            "never_yield_courteous": float(stubborn.courteous), "never_yield_t_merge": float(stubborn.t_merge),
+            "never_yield_b_imposed": stubborn.b_imposed, "never_yield_policy": stubborn.policy}
+
+
+def aggregate(rows) -> dict:
+    """The batch's rates (Wilson 95%) and mean t_merge over courteous worlds (Student t 95%) for both searches."""
+    out = {"worlds": float(len(rows))}
+    for k in ("ceiling", "never_yield"):
+        hits = np.array([r[f"{k}_courteous"] for r in rows], float)
+        out[f"{k}_courteous"] = float(hits.mean()) if len(hits) else float("nan")
+        out[f"{k}_courteous_lo"], out[f"{k}_courteous_hi"] = stats.wilson(float(hits.sum()), len(hits))
+        t = [r[f"{k}_t_merge"] for r in rows if r[f"{k}_courteous"]]
+        out[f"{k}_t_merge"], out[f"{k}_t_merge_lo"], out[f"{k}_t_merge_hi"] = stats.mean_ci(t)
+    return out
+
+
+def check(cfg):
+    """One line for a setting the search cannot honour: a world other than the reactive one, too small a search."""
+    validate.check(cfg, "ceiling")
+    if cfg.world != "reactive":
+        raise UserError(f"world={cfg.world}: the ceiling searches copies of the true world; it needs world=reactive")
+
+
+@guarded
+def run(cfg: DictConfig) -> dict:
+    """Search cfg.episodes worlds (seeds cfg.seed on) in parallel; per-world CSV, MLflow run (experiment `ceiling`)."""
+    check(cfg)
+    scenario = instantiate(cfg.scenario, _convert_="all")
+    out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir), "out_dir")
+    seeds = range(cfg.seed, cfg.seed + cfg.episodes)
+    with mlflow_run("ceiling", cfg, run_name=f"ceiling-{scenario.name}", scenario=scenario.name, seed=cfg.seed):
+        rows = Parallel(n_jobs=cfg.n_jobs)(delayed(ceiling)(scenario, cfg, s) for s in seeds)
+        csv_path = out_dir / f"ceiling_{scenario.name}.csv"
+        atomic_file(csv_path, lambda p: pd.DataFrame(rows).to_csv(p, index=False))
+        r = aggregate(rows)
+        mlflow.log_metrics(r)
+        mlflow.log_artifact(str(csv_path))
+    ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
+    log.info(f"{scenario.name}, {len(rows)} worlds from seed {cfg.seed} (95% intervals): courteous merge "
+             f"{ci('ceiling_courteous', '.1%')} in {ci('ceiling_t_merge', '.1f')} steps; never yield "
+             f"{ci('never_yield_courteous', '.1%')} in {ci('never_yield_t_merge', '.1f')} steps; per world: {csv_path}")
+    return r
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="ceiling")
+def main(cfg: DictConfig) -> None:
+    run(cfg)

@@ -1,0 +1,121 @@
+"""Physics, courtesy metrics, perception and the clairvoyant ceiling on hand-built worlds and the dense scenario."""
+import numpy as np
+import pytest
+from hydra.utils import instantiate
+
+from bench import ceiling
+from conftest import compose_cfg
+from core.jobs import UserError
+from data import outcomes, perception
+from data.drivers import IDMDriver
+from data.world import World, backfill
+
+
+def scenario(name, *overrides):
+    """The scenario `name` of the ceiling's config, with `scenario.k=v` overrides."""
+    return instantiate(compose_cfg("ceiling", [f"scenario={name}", *overrides]).scenario, _convert_="all")
+
+
+def lane_world(z, will_yield, **driver):
+    """Two-lane world of states z (M, 4) with the two_lane scenario's road, bicycle and b_max, one driver per other car."""
+    sc = scenario("two_lane")
+    return World(sc.road, np.array(z, float), [IDMDriver(**driver) for _ in z[1:]], np.array(will_yield), sc.b_max,
+                 params=sc.params)
+
+
+def test_a_cut_in_with_no_room_brakes_at_exactly_b_max_and_collides():
+    # the ego dropped into the follower's lane 0.2 m ahead of its bumper, both at 5 m/s: no braking can avoid it
+    sc = scenario("two_lane")
+    world = lane_world([[10.0 + sc.road.car_length + 0.2, 4.0, 0.0, 3.0], [10.0, 4.0, 0.0, 5.0]], [False, False])
+    hits = []
+    for _ in range(3):
+        hits += world.step([0.0, 0.0])
+    v = np.array([s[1, 3] for s in world.seen])
+    assert -np.diff(v)[0] / sc.params.dt == pytest.approx(sc.b_max)  # plain IDM asks for far more
+    assert (0, 1) in hits
+
+
+def test_imposed_braking_courtesy_and_ttc_on_a_hand_built_episode():
+    dt = 0.2
+    states = np.zeros((4, 3, 4))
+    states[:, 1, 3] = [5.0, 4.6, 3.8, 3.9]  # car 1 brakes at 2, then 4, then speeds up
+    states[:, 2, 3] = [5.0, 5.0, 4.0, 3.0]  # car 2 brakes at 0, 5, 5
+    assert outcomes.b_imposed_max(states, dt) == pytest.approx(5.0)
+    assert outcomes.courteous(True, False, 5.0, 4.0) == 0.0
+    assert outcomes.courteous(True, False, 3.9, 4.0) == 1.0
+    assert outcomes.courteous(False, False, 0.0, 4.0) == 0.0 and outcomes.courteous(True, True, 0.0, 4.0) == 0.0
+    road = scenario("two_lane").road
+    z = np.array([[0.0, 4.0, 0.0, 6.0], [10.0, 4.0, 0.0, 4.0], [-8.0, 4.0, 0.0, 7.0], [5.0, 0.0, 0.0, 0.0]])
+    # ahead: gap 10 - 3.6 at 2 m/s closing = 3.2 s; behind: 8 - 3.6 at 1 m/s = 4.4 s; car 3 is in another lane
+    assert outcomes.ttc(z, road) == pytest.approx((10.0 - road.car_length) / 2.0)
+    z[1, 3] = 7.0
+    assert outcomes.ttc(z, road) == pytest.approx(8.0 - road.car_length)
+
+
+def test_never_yield_copy_never_yields():
+    sc = scenario("two_lane")
+    world = sc.make_world(0)
+    assert world.decisions()[1:].any()  # two_lane holds a cooperative driver
+    stubborn = world.with_decisions(np.zeros(len(world.states()), bool))
+    assert not stubborn.decisions().any() and world.decisions()[1:].any()  # a copy: the original keeps its drivers
+    policy = ceiling.GapPolicy(sc.y_ref, sc.x_ref, 0, 1.8, 1.0, sc.road.car_length, sc.params)
+    target = policy.pick(stubborn.states())
+    for _ in range(30):
+        stubborn.step(policy(stubborn.states(), target))
+        assert not stubborn.yielding.any()
+
+
+def test_slots_are_the_nearest_cars_in_id_order_with_their_own_histories():
+    sc = scenario("dense")
+    world = sc.make_world(5)
+    for _ in range(12):
+        world.step([0.05, 1.0])  # the ego drifts forward and left: the nearest cars change
+    z = world.states()
+    seen = perception.observe(world, 4, 8)
+    d = np.hypot(*(z[1:, :2] - z[0, :2]).T)
+    assert list(seen.ids) == [0, *sorted(np.argsort(d)[:4] + 1)]
+    past = np.array([s[:, :2] for s in world.seen[-8:]])
+    assert np.array_equal(seen.history, past[:, seen.ids])  # every slot carries its own car's observed past
+    fresh = sc.make_world(5)
+    assert np.allclose(perception.observe(fresh, 4, 8).history[:, 0], backfill(fresh.states(), 8, sc.params.dt)[:, 0])
+
+
+def test_dense_traffic_is_calm_with_the_ego_held_in_its_lane():
+    sc = scenario("dense")
+    for seed in range(3):
+        world = sc.make_world(seed)
+        states = [world.states()]
+        for _ in range(40):
+            z = world.states()[0]
+            world.step([0.0, float(np.clip(np.sqrt(5.0 * max(0.0, sc.x_ref - 2.0 - z[0])) - z[3], -3.0, 1.0))])
+            states.append(world.states())
+        assert outcomes.b_imposed_max(np.array(states), sc.params.dt) <= 2.0, f"seed {seed}"
+        assert world.collisions == []
+
+
+def test_a_stream_too_short_for_its_promise_is_one_clear_line():
+    with pytest.raises(UserError, match="scenario.followers=6: the stream reaches"):
+        scenario("dense", "scenario.followers=6").make_world(0)
+
+
+def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
+    cfg = compose_cfg("ceiling", ["scenario=dense", "search.gaps=1", "search.y_lean=[1.8]", "search.clearance=[1.0]"])
+    sc = scenario("dense")
+    # one wide gap beside the ego: entering needs nobody to yield
+    open_lane = lane_world([[9.2, 0.0, 0.0, 5.0], [30.0, 4.0, 0.0, 5.0], [2.0, 4.0, 0.0, 5.0], [-6.0, 4.0, 0.0, 5.0]],
+                           [False] * 4, v0=5.0)
+    best = ceiling.search_world(open_lane, sc, cfg)
+    assert best.courteous and best.t_merge < 20
+    # bumper to bumper, nobody yields, and the lane ends 10 m ahead: no courteous merge exists
+    closed = lane_world([[9.2, 0.0, 0.0, 5.0]] + [[x, 4.0, 0.0, 5.0] for x in np.arange(40.0, -40.0, -4.0)],
+                        [False] * 21, v0=5.0, T=0.1, s0=0.4)
+    walled = instantiate(compose_cfg("ceiling", ["scenario=dense", "scenario.x_ref=20"]).scenario, _convert_="all")
+    assert not ceiling.search_world(closed, walled, cfg).courteous
+
+
+def test_ceiling_refuses_the_predictor_world(capsys):
+    with pytest.raises(SystemExit) as e:
+        ceiling.run(compose_cfg("ceiling", ["world=predictor", "episodes=1"]))
+    assert e.value.code == 2
+    assert capsys.readouterr().err.strip() == "error: world=predictor: the ceiling searches copies of the true world; " \
+                                               "it needs world=reactive"
