@@ -20,17 +20,17 @@ import mlflow
 import numpy as np
 import pandas as pd
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
 from joblib import Parallel, delayed
 from omegaconf import DictConfig
 
 from core import stats, validate
-from core.jobs import CONF_DIR, UserError, atomic_file, guarded, mlflow_run, writable
+from core.jobs import CONF_DIR, UserError, atomic_file, console, guarded, mlflow_run, writable
 from data import outcomes
 from data.bicycle import BicycleParams
 from data.drivers import IDMDriver
 from data.protocol import World
 from data.world import steer_to
+from planner.setup import build
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ class GapPolicy:
     align: float = 3.0  # lean only within this distance of the gap's middle (m)
     k_x: float = 0.5  # speed set-point per metre from the gap's middle (1/s)
     k_v: float = 1.5  # speed loop gain (1/s)
+    k_y: float = 0.6  # lateral gain of the steering law (1/s, data.world.steer_to)
     a_bounds: tuple = (-4.0, 2.0)  # the ego's acceleration limits (m/s^2)
     follow: IDMDriver = field(default_factory=lambda: IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0))  # in the target lane
 
@@ -77,7 +78,7 @@ class GapPolicy:
                 y = self.y_ref
             else:
                 y = self.y_lean if abs(middle - ego[0]) <= self.align else 0.0
-        return np.array([steer_to(ego, y, self.params), float(np.clip(a, *self.a_bounds))])
+        return np.array([steer_to(ego, y, self.params, k_y=self.k_y), float(np.clip(a, *self.a_bounds))])
 
 
 @dataclass(frozen=True)
@@ -133,20 +134,37 @@ def search_world(world: World, scenario, cfg) -> Outcome:
     return best
 
 
+def held_in_lane(world: World, scenario, steps) -> float:
+    """The largest braking (m/s^2) of any other car over `steps` with the ego kept in its lane, stopping before its end:
+    what the world does without the ego's doing (calibration: at most 2 m/s^2)."""
+    w = world.copy()
+    states = [w.states()]
+    for _ in range(steps):
+        z = states[-1][0]
+        a = np.clip(np.sqrt(5.0 * max(0.0, scenario.x_ref - 2.0 - z[0])) - z[3], -4.0, 1.0)
+        w.step(np.array([steer_to(z, scenario.road.centre(0), scenario.params), a]))
+        states.append(w.states())
+    return outcomes.b_imposed_max(np.array(states), scenario.params.dt)
+
+
 def ceiling(scenario, cfg, seed: int) -> dict:
-    """One world's row: the search with its true hidden decisions and with every driver stubborn."""
+    """One world's row: the search with its true hidden decisions and with every driver stubborn, and the braking the
+    world shows with the ego held in its lane."""
     world = scenario.make_world(seed)
     true = search_world(world, scenario, cfg)
     stubborn = search_world(world.with_decisions(np.zeros(len(world.states()), bool)), scenario, cfg)
     return {"seed": seed, "ceiling_courteous": float(true.courteous), "ceiling_t_merge": float(true.t_merge),
             "ceiling_b_imposed": true.b_imposed, "ceiling_policy": true.policy,
             "never_yield_courteous": float(stubborn.courteous), "never_yield_t_merge": float(stubborn.t_merge),
-            "never_yield_b_imposed": stubborn.b_imposed, "never_yield_policy": stubborn.policy}
+            "never_yield_b_imposed": stubborn.b_imposed, "never_yield_policy": stubborn.policy,
+            "held_b_imposed": held_in_lane(world, scenario, cfg.max_steps)}
 
 
 def aggregate(rows) -> dict:
     """The batch's rates (Wilson 95%) and mean t_merge over courteous worlds (Student t 95%) for both searches."""
-    out = {"worlds": float(len(rows))}
+    held = np.array([r["held_b_imposed"] for r in rows], float)
+    out = {"worlds": float(len(rows)), "held_b_imposed_max": float(held.max(initial=0.0)),
+           "held_calm": float(np.mean(held <= 2.0)) if len(held) else float("nan")}
     for k in ("ceiling", "never_yield"):
         hits = np.array([r[f"{k}_courteous"] for r in rows], float)
         out[f"{k}_courteous"] = float(hits.mean()) if len(hits) else float("nan")
@@ -167,7 +185,7 @@ def check(cfg):
 def run(cfg: DictConfig) -> dict:
     """Search cfg.episodes worlds (seeds cfg.seed on) in parallel; per-world CSV, MLflow run (experiment `ceiling`)."""
     check(cfg)
-    scenario = instantiate(cfg.scenario, _convert_="all")
+    scenario = build(cfg.scenario)
     out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir), "out_dir")
     seeds = range(cfg.seed, cfg.seed + cfg.episodes)
     with mlflow_run("ceiling", cfg, run_name=f"ceiling-{scenario.name}", scenario=scenario.name, seed=cfg.seed):
@@ -180,10 +198,16 @@ def run(cfg: DictConfig) -> dict:
     ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
     log.info(f"{scenario.name}, {len(rows)} worlds from seed {cfg.seed} (95% intervals): courteous merge "
              f"{ci('ceiling_courteous', '.1%')} in {ci('ceiling_t_merge', '.1f')} steps; never yield "
-             f"{ci('never_yield_courteous', '.1%')} in {ci('never_yield_t_merge', '.1f')} steps; per world: {csv_path}")
+             f"{ci('never_yield_courteous', '.1%')} in {ci('never_yield_t_merge', '.1f')} steps; ego held in its lane: others "
+             f"brake at most {r['held_b_imposed_max']:.2f} m/s^2; per world: {csv_path}")
     return r
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="ceiling")
-def main(cfg: DictConfig) -> None:
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Entry point of the `ceiling` console script: overrides checked first (one line for a misspelt key)."""
+    console("ceiling", hydra_main)

@@ -29,7 +29,7 @@ from omegaconf import DictConfig
 
 from bench.branches import KINDS, Pair, execute, make_pairs
 from core import validate
-from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, writable
+from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, open_experiment, writable
 from core.stats import bootstrap
 from planner.gradients import available
 
@@ -39,7 +39,7 @@ REFERENCE = "reference"
 SOURCES = available(needs_world=False)  # conf/gradients/ but the oracle: it reads the planner's running world
 POS = validate.Real(0, lo_open=True)
 SCHEMA = {
-    "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE))), "models_dir": validate.Text(),
+    "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE)), at_least=1), "models_dir": validate.Text(),
     "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "n_slots": validate.Int(1), "T_p": validate.Int(1),
     "branch.min_steps": validate.Int(0), "branch.max_steps": validate.Int(0), "branch.reach": POS,
     "branch.tries": validate.Int(1), "plans.kinds": validate.ListOf(validate.OneOf(KINDS)),
@@ -187,6 +187,7 @@ def run(cfg: DictConfig) -> dict:
         if low > high:
             raise UserError(f"{key} = {low}, {high}: the low end is above the high end")
     out = writable(Path(cfg.out_dir), "out_dir")
+    open_experiment("interaction")  # an unusable store fails now, not after the branches
     scenario = instantiate(cfg.scenario, _convert_="all")
     t0 = time.perf_counter()
     pairs = make_pairs(scenario, dict(cfg.dataset.policy), cfg)
@@ -222,5 +223,10 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="evaluate_interaction")
-def main(cfg: DictConfig) -> None:
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point."""
+    console("evaluate_interaction", hydra_main)

@@ -23,7 +23,7 @@ from threadpoolctl import threadpool_limits
 
 from bench.states import planning_states, settings, solver_step
 from core import validate
-from core.jobs import CONF_DIR, UserError, guarded, mlflow_run
+from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, open_experiment
 from core.rollout import ego_xy
 from planner import mpc
 from planner.gradients import Source, available, source_class
@@ -231,6 +231,7 @@ def single_threaded(cfg: DictConfig):
 def run(cfg: DictConfig) -> dict:
     """Collect or load the states, time every source and the floor, log the table and the ratios and to MLflow."""
     validate.check(cfg, "bench")
+    open_experiment("bench")  # an unusable store fails now, not after the timing
     with single_threaded(cfg):
         states = planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario, gradients=cfg.states.gradients,
                                  seed=cfg.states.seed)
@@ -254,9 +255,13 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="bench")
-def main(cfg: DictConfig) -> None:
-    """Console entry point (`python -m bench.step_time`)."""
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point (`python -m bench.step_time`)."""
+    console("bench", hydra_main)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 
 from bench.states import planning_states, settings, solver_step
 from bench.step_time import log_bench, single_threaded, sources
-from core.jobs import CONF_DIR, guarded
+from core.jobs import CONF_DIR, console, guarded, open_experiment
 from core.rollout import b_i, ego_xy
 from planner import mpc
 from planner.pygranso_zstep import import_pygranso
@@ -100,6 +100,7 @@ def table(rows: dict, metrics: dict) -> str:
 def run(cfg: DictConfig) -> dict:
     """Load the saved states, step each with both Z-steps for every available source, log the table and to MLflow."""
     import_pygranso()  # one clear line if the extra is missing, before any work
+    open_experiment("bench")  # and if the store is unusable
     only = list(cfg.zstep_compare.sources)
     with single_threaded(cfg):
         states = subset(planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario,
@@ -116,9 +117,13 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="bench")
-def main(cfg: DictConfig) -> None:
-    """Console entry point (`python -m bench.zstep_compare`)."""
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point (`python -m bench.zstep_compare`)."""
+    console("bench", hydra_main)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,37 @@ class UserError(Exception):
     """A problem the user can fix (missing or corrupt file, bad value); printed as one line, never a traceback."""
 
 
+def check_groups(argv):
+    """One clear line, before Hydra, for a config-group override naming an option that does not exist (each value of a
+    comma-separated sweep checked)."""
+    for a in argv:
+        key, _, value = a.lstrip("+~").partition("=")
+        choices = options(key)  # none: not a config group
+        if not value or not choices:
+            continue
+        for v in value.split(","):
+            if v not in choices:
+                raise UserError(f"unknown {key} '{v}'; choose one of {', '.join(choices)}")
+
+
+def check_overrides(config_name: str, argv) -> None:
+    """check_groups, then one UserError line for an override Hydra would reject with several (a misspelt key); argv with
+    Hydra's own flags (--help, --multirun, ...) is left to Hydra."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    check_groups(argv)
+    if any(a.startswith("-") for a in argv):
+        return
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            compose(config_name, overrides=list(argv))
+    except (HydraException, OmegaConfBaseException) as e:
+        cause = e.__cause__ if isinstance(e.__cause__, OmegaConfBaseException) else None
+        raise UserError(" ".join(str(x).splitlines()[0].rstrip(".") + "." for x in (e, cause) if x is not None)) from None
+
+
 class Stopped(BaseException):
     """The job was stopped by a signal; not an Exception, so no `except Exception` in a library swallows it."""
 
@@ -45,34 +76,66 @@ class Stopped(BaseException):
 
 
 def _stop(signum, frame):
-    signal.signal(signum, signal.SIG_IGN)  # a second SIGTERM must not interrupt the clean-up this one starts
+    signal.signal(signum, signal.SIG_IGN)  # a second signal must not interrupt the clean-up this one starts
     raise Stopped(signum)
 
 
-def guarded(fn):
-    """Run a job body; a UserError becomes one 'error: ...' line on stderr and exit status 2, SIGTERM exit 128 + 15.
+def quiet() -> bool:
+    """No progress bars under CI (the CI variable set, as every CI service does) or when stderr is not a terminal."""
+    return bool(os.environ.get("CI")) or not sys.stderr.isatty()
 
-    SIGTERM raises Stopped (Lightning, which otherwise turns it into a clean exit 0, calls this handler after its own), so
-    the MLflow run ends KILLED and `make` stops.
+
+def drop_empty_run_dir():
+    """Remove the running Hydra job's output folder (and its parents, while empty) when it holds nothing but Hydra's own
+    records (.hydra/, empty logs): a rejected command writes nothing."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if not run_dir.is_dir() or any(p.name != ".hydra" and not (p.suffix == ".log" and p.stat().st_size == 0)
+                                   for p in run_dir.iterdir()):
+        return
+    shutil.rmtree(run_dir, ignore_errors=True)
+    for parent in run_dir.parents:
+        if parent == Path.cwd() or not parent.is_dir() or any(parent.iterdir()):
+            break
+        parent.rmdir()
+
+
+def guarded(fn):
+    """Run a job body; a UserError becomes one 'error: ...' line on stderr and exit status 2 (its empty Hydra folder
+    removed), SIGTERM and SIGINT one line and exit 128 + the signal number.
+
+    Both signals raise Stopped (Lightning, which otherwise turns SIGTERM into a clean exit 0 and Ctrl-C into exit 1, calls
+    this handler after its own), so the MLflow run ends KILLED and `make` stops.
     """
 
     def run(*args, **kwargs):
         main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGTERM, _stop) if main else None
+        previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
         try:
             return fn(*args, **kwargs)
         except UserError as e:
             print(f"error: {e}", file=sys.stderr)
+            drop_empty_run_dir()
             sys.exit(2)
         except Stopped as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(128 + e.signum)
         finally:
-            if main:
-                signal.signal(signal.SIGTERM, previous)
+            for s, handler in previous.items():
+                signal.signal(s, handler)
 
     run.__name__, run.__doc__ = fn.__name__, fn.__doc__
     return run
+
+
+def console(config_name: str, hydra_main) -> None:
+    """A console script: sys.argv's overrides checked first (check_overrides: one line, exit 2), then `hydra_main` (a
+    hydra.main function of config `config_name`)."""
+    guarded(check_overrides)(config_name, sys.argv[1:])
+    hydra_main()
 
 
 def flatten(cfg: DictConfig) -> dict:
@@ -115,14 +178,60 @@ def store_lock(uri: str):
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
+def create_store(uri: str) -> None:
+    """A new SQLite store built whole in a temporary file beside it and renamed into place (call under store_lock): a job
+    killed while MLflow creates its tables leaves no half-made store behind."""
+    from mlflow.tracking import MlflowClient
+
+    db = Path(uri[len("sqlite:///"):])
+    if db.exists() and db.stat().st_size:
+        return
+    tmp = db.with_name(f".{db.name}.creating")
+    leftovers = [tmp, *(tmp.with_name(tmp.name + s) for s in ("-journal", "-wal", "-shm"))]  # SQLite's own beside it
+    for f in leftovers:  # a creator killed outright (SIGKILL) left them; the lock says nobody else is writing them
+        f.unlink(missing_ok=True)
+    try:
+        MlflowClient(f"sqlite:///{tmp}").search_experiments(max_results=1)
+        os.replace(tmp, db)
+    finally:
+        for f in leftovers:
+            f.unlink(missing_ok=True)
+
+
+STORE_TIMEOUT_S = 10  # how long open_experiment waits for a tracking server before the job gives up
+
+
 def open_experiment(experiment: str) -> str:
-    """Create the store (once, under store_lock) and the experiment if needed, make it current; returns the tracking URI."""
+    """Create the store (once, under store_lock) and the experiment if needed, make it current; returns the tracking URI.
+
+    Called before a job's work: a store that cannot be written or reached is one UserError at once, a server that does
+    not answer within STORE_TIMEOUT_S without MLflow's minutes of retries.
+    """
     import mlflow
 
     uri = tracking_uri()
-    with store_lock(uri):
-        mlflow.set_tracking_uri(uri)
-        mlflow.set_experiment(experiment)
+    quick = {"MLFLOW_HTTP_REQUEST_TIMEOUT": str(STORE_TIMEOUT_S), "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
+    saved = {k: os.environ.get(k) for k in quick}
+    os.environ.update(quick)
+    try:
+        with store_lock(uri):
+            if uri.startswith("sqlite:///"):
+                db = Path(uri[len("sqlite:///"):])
+                if not os.access(db.parent, os.W_OK) or (db.exists() and not os.access(db, os.W_OK)):
+                    raise OSError(f"{db} is not writable")
+                create_store(uri)
+            mlflow.set_tracking_uri(uri)
+            mlflow.set_experiment(experiment)
+    except Exception as e:  # OSError, sqlalchemy's and MLflow's own types: the store is unusable either way
+        why = (str(e).splitlines() or [""])[0][:200]
+        raise UserError(f"cannot use the MLflow store {uri} ({type(e).__name__}: {why}); set MLFLOW_TRACKING_URI to a "
+                        "writable sqlite:///path or a running server") from None
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k)
+            else:
+                os.environ[k] = v
     return uri
 
 

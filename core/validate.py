@@ -109,6 +109,20 @@ class Text:
 
 
 @dataclass(frozen=True)
+class Name:
+    """A single path component (a folder or file name inside an output folder): not '.', '..', nor holding a separator."""
+
+    optional: bool = False
+    nullable: bool = False
+
+    def ok(self, v):
+        return isinstance(v, str) and v.strip() != "" and v not in (".", "..") and "/" not in v and "\\" not in v
+
+    def allowed(self):
+        return "a single folder name (no '/', not '.' or '..')"
+
+
+@dataclass(frozen=True)
 class Range:
     """[low, high] with lo <= low <= high <= hi (low < high when strict)."""
 
@@ -231,7 +245,7 @@ SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every sce
 }
 
 DATASET = {
-    "dataset.name": Text(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2), "dataset.n_slots": Int(1),
+    "dataset.name": Name(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2), "dataset.n_slots": Int(1),
     "dataset.seed": SEED, "dataset.split": Fractions(3), "dataset.n_jobs": N_JOBS,
 }
 
@@ -255,7 +269,7 @@ TRAINER = {
 DISTILL = {
     **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1, nullable=True),
     "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "models_dir": Text(), "run_dir": Text(),
-    "ckpt_path": Text(nullable=True), "dataset.name": Text(),
+    "ckpt_path": Text(nullable=True), "dataset.name": Name(),
     "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,
     "model.teacher": OneOf(("teacher",), optional=True),
     **{f"model.task.{k}": Real(0, optional=True) for k in ("jac_weight", "ego_jac_weight", "spectral_weight", "rollout_weight", "contrast_weight",
@@ -287,7 +301,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     **PAPER, **SCENARIO, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
     "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
-    "T_obs": Int(2, 21), "n_slots": Int(1), "merge_tol": POS, "plots": Bool(),
+    "T_obs": Int(2, 21), "n_slots": Int(1), "merge_tol": POS, "plots": Bool(), "tolerate_crashes": Bool(),
     "mpc.T_p": Int(1), "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
     "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
     "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
@@ -323,10 +337,12 @@ RESULTS = {
     "results_preset.scenarios": ListOf(OneOf(tuple(options("scenario")))),
     "results_preset.episodes": Int(1), "results_preset.table2_episodes": Int(1),
     "results_preset.interaction_sources": ListOf(OneOf((*GRADIENT_OPTIONS.choices, "reference"))),
+    "results_preset.dense_episodes": Int(1), "results_preset.calibration_episodes": Int(1),
+    "results_preset.calibration": ListOf(OneOf(tuple(options("scenario")))), "results_preset.ceiling": OVERRIDES,
 }
 
 COMPARE = {
-    "out_dir": Text(), "experiment": Text(), "group_by": ListOf(Text(), at_least=1),
+    "out_dir": Text(), "experiment": Text(), "columns": ListOf(Text(), at_least=1), "ignore": ListOf(Text()),
     "scenario": OneOf(tuple(options("scenario")), nullable=True),
 }
 

@@ -9,7 +9,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import CONF_DIR, guarded, mlflow_run, writable
+from core.jobs import CONF_DIR, console, guarded, mlflow_run, writable
 from data import dataset
 from data.plot import plot_episode
 
@@ -42,5 +42,10 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="make_dataset")
-def main(cfg: DictConfig) -> None:
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Entry point of the `make-dataset` console script: overrides checked first (one line for a misspelt key)."""
+    console("make_dataset", hydra_main)

@@ -22,7 +22,7 @@ from data.policies import sample_policy
 from data.scenarios import Scenario
 from data.world import steer_to
 
-FORMAT = 2
+FORMAT = 3
 SPLITS = ("train", "val", "test")
 ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and SLOTS = N + 1)
     "X": ("f", lambda t, m: (t, m, 2)),
@@ -31,6 +31,7 @@ ARRAYS = {  # name -> (dtype kind, trailing shape given T_obs and SLOTS = N + 1)
     "step": ("i", lambda t, m: ()),
     "branch": ("i", lambda t, m: ()),
     "yielding": ("b", lambda t, m: (m,)),
+    "ids": ("i", lambda t, m: (m,)),
 }
 
 
@@ -95,15 +96,17 @@ def branch(world, ego, steps):
 
 
 def windows(xy, yielding, t_obs: int, n_slots: int):
-    """All (X (n, t_obs, n_slots+1, 2), Y (n, n_slots+1, 2), last observed step (n,), yielding at it (n, n_slots+1)) of one
-    episode's xy (T, M, 2), slots chosen at each last observed step (data.perception.slot_ids)."""
+    """All (X (n, t_obs, n_slots+1, 2), Y (n, n_slots+1, 2), last observed step (n,), yielding at it (n, n_slots+1), the
+    world ids in the slots (n, n_slots+1)) of one episode's xy (T, M, 2), slots chosen at each last observed step
+    (data.perception.slot_ids)."""
     last = np.arange(t_obs - 1, len(xy) - 1)
+    m = n_slots + 1
     if not len(last):
-        return np.zeros((0, t_obs, n_slots + 1, 2)), np.zeros((0, n_slots + 1, 2)), last, np.zeros((0, n_slots + 1), bool)
+        return np.zeros((0, t_obs, m, 2)), np.zeros((0, m, 2)), last, np.zeros((0, m), bool), np.zeros((0, m), int)
     ids = np.stack([slot_ids(xy[t], n_slots) for t in last])
     X = np.stack([xy[t - t_obs + 1 : t + 1][:, i] for t, i in zip(last, ids)])
     rows = np.arange(len(last))[:, None]
-    return X, xy[last + 1][rows, ids], last, yielding[last][rows, ids]
+    return X, xy[last + 1][rows, ids], last, yielding[last][rows, ids], ids
 
 
 def episode_seeds(seed: int, episodes: int):
@@ -130,16 +133,16 @@ def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs, n_slots):
     for b, w in ((k, copies[k]) for k in points):
         for ego in interventions(rng, w, scenario.y_ref, branch_cfg):
             s_b, y_b = branch(w, ego, t_pred)
-            X, Y, last, flags = windows(np.concatenate([states[:b, :, :2], s_b[..., :2]]),
+            X, Y, last, flags, ids = windows(np.concatenate([states[:b, :, :2], s_b[..., :2]]),
                                         np.concatenate([yielding[:b], y_b]), t_obs, n_slots)
             keep = last >= b  # earlier windows are the episode's own
-            parts.append((X[keep], Y[keep], last[keep], flags[keep], len(parts)))
-    X, Y, last, flags = (np.concatenate([p[k] for p in parts]) for k in range(4))
-    branch_id = np.concatenate([np.full(len(p[0]), p[4]) for p in parts])
+            parts.append((X[keep], Y[keep], last[keep], flags[keep], ids[keep], len(parts)))
+    X, Y, last, flags, ids = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    branch_id = np.concatenate([np.full(len(p[0]), p[5]) for p in parts])
     stats = {"collided": bool(world.collisions), "attempts": policy.attempts, "any_yield": bool(yielding.any()),
              "merged": bool(world.road.lane_of(world.z[0, 1]) == world.road.lane_of(scenario.y_ref)),
              "branches": len(parts) - 1}
-    return X, Y, last, flags, branch_id, stats
+    return X, Y, last, flags, ids, branch_id, stats
 
 
 def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: int, steps: int, t_obs: int, n_slots: int,
@@ -163,9 +166,10 @@ def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: i
             "episode": np.concatenate([np.full(len(p[0]), e) for e, p in zip(eps, parts)]).astype(np.int32),
             "step": np.concatenate([p[2] for p in parts]).astype(np.int32),
             "yielding": np.concatenate([p[3] for p in parts]).astype(bool),
-            "branch": np.concatenate([p[4] for p in parts]).astype(np.int32),
+            "ids": np.concatenate([p[4] for p in parts]).astype(np.int32),
+            "branch": np.concatenate([p[5] for p in parts]).astype(np.int32),
         }
-    return splits, [r[5] for r in results]
+    return splits, [r[6] for r in results]
 
 
 def summarize(stats: list) -> dict:
@@ -259,6 +263,7 @@ def make(cfg_dataset, scenario, root: Path, config_yaml: str) -> dict:
         "slots": "0 = ego; 1..N = the N other cars nearest the ego at the last observed step, in id order",
         "shapes": {"X": "(n, T_obs, N+1, 2) past xy", "Y": "(n, N+1, 2) next xy", "episode": "(n,)",
                    "step": "(n,) last observed step", "yielding": "(n, N+1) hidden: car brakes for the ego",
+                   "ids": "(n, N+1) the world ids in the slots (0: the ego)",
                    "branch": "(n,) 0 = the episode's own run, k >= 1 its k-th counterfactual branch"},
         "stats": summarize(stats), "build_s": round(time.perf_counter() - t0, 2), "config": config_yaml,
     }

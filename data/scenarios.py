@@ -96,6 +96,16 @@ class DenseScenario(RandomScenario):
     beside_range: tuple  # the stream car (1 = the front one) the ego starts beside, drawn uniformly
     min_behind_s: float  # the stream must reach further behind the ego than it drives in this time (s)
 
+    def __post_init__(self):
+        super().__post_init__()
+        for v in self.speed_range:  # the shortest stream any seed can draw: tightest gaps, the ego beside its last car
+            spacing = self.road.car_length + self.gap_factor_range[0] * (self.driver_ranges["s0"][0] + v * self.driver_ranges["T"][0])
+            behind = (self.followers + 0.5 - self.beside_range[1]) * spacing
+            if behind < self.min_behind_s * v:
+                raise UserError(f"scenario.followers={self.followers}: the stream may reach only {behind:.0f} m behind the ego, "
+                                f"less than the {self.min_behind_s * v:.0f} m it drives in min_behind_s={self.min_behind_s} s "
+                                f"at {v} m/s; raise scenario.followers")
+
     def sample(self, rng):
         """Draw lanes, speed, drivers and gaps, then put the stream so that the ego is beside car k, within half a gap."""
         lanes, v, drivers = self.stream(rng)
@@ -103,10 +113,6 @@ class DenseScenario(RandomScenario):
         k = int(rng.integers(self.beside_range[0], self.beside_range[1] + 1))
         spacing = [self.road.car_length + gap_factor * d.equilibrium_gap(v) for d in drivers[1:]]
         x0 = self.ego["x"] + sum(spacing[: k - 1]) + rng.uniform(-0.5, 0.5) * spacing[k - 1]
-        if self.ego["x"] - (x0 - sum(spacing)) < self.min_behind_s * v:
-            raise UserError(f"scenario.followers={self.followers}: the stream reaches {self.ego['x'] - x0 + sum(spacing):.0f} m "
-                            f"behind the ego, less than the {self.min_behind_s * v:.0f} m it drives in min_behind_s="
-                            f"{self.min_behind_s} s; raise scenario.followers")
         ego = {"x": self.ego["x"], "y": 0.0, "psi": 0.0, "v": max(0.5, v + rng.uniform(*self.ego_dv_range))}
         road = Road(lanes, self.road.lane_width, self.road.car_length, self.road.car_width)
         return dict(road=road, lane_change=lanes > 2, platoon_x=x0, platoon_v=v, drivers=drivers,

@@ -2,11 +2,15 @@
 import hydra
 from omegaconf import DictConfig
 
-from core.jobs import CONF_DIR, guarded
+from core.jobs import CONF_DIR, console, guarded
 from distill.train import run
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="distill")
-def main(cfg: DictConfig) -> None:
-    """Entry point of the `distill` console script."""
+def hydra_main(cfg: DictConfig) -> None:
     guarded(run)(cfg)
+
+
+def main() -> None:
+    """Entry point of the `distill` console script."""
+    console("distill", hydra_main)

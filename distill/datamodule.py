@@ -91,11 +91,13 @@ def groups(a, needed_by=None) -> np.ndarray:
 
 def futures(a, horizon):
     """Every window of split arrays `a` with the next `horizon` recorded steps of its run (episode and branch):
-    X (n, T_obs, SLOTS, 2), ego (n, H, 2), others (n, H, N, 2), mask (n, H) of the steps the run reached."""
+    X (n, T_obs, SLOTS, 2), ego (n, H, 2), others (n, H, N, 2), mask (n, H) of the steps the run reached with the
+    same cars in its slots (the nearest cars change as the ego moves: a future never mixes cars)."""
     runs = list(zip(a["episode"], a["branch"], a["step"]))
     key = {r: i for i, r in enumerate(runs)}
     idx = np.array([[key.get((e, b, s + k), -1) for k in range(horizon)] for e, b, s in runs]).reshape(len(runs), horizon)
-    mask = np.cumprod(idx >= 0, axis=1).astype(bool)  # a run has no holes, but stop at the first missing step anyway
+    same = (a["ids"][np.maximum(idx, 0)] == a["ids"][:, None]).all(-1)
+    mask = np.cumprod((idx >= 0) & same, axis=1).astype(bool)  # stop at the first missing step or change of slots
     Y = a["Y"][np.where(mask, idx, 0)].astype(np.float64)  # (n, H, SLOTS, 2)
     ego = Y[:, :, 0]
     last, step = a["X"][:, -1, 0].astype(np.float64), (a["X"][:, -1, 0] - a["X"][:, -2, 0]).astype(np.float64)

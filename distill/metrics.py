@@ -11,13 +11,14 @@ from core.rollout import rollout
 
 
 def rollout_cases(a: dict, t_p: int):
-    """history (n, T_obs, SLOTS, 2), ego future (n, T_p, 2), others' future (n, T_p, N, 2), yield flag (n,) from split arrays."""
+    """history (n, T_obs, SLOTS, 2), ego future (n, T_p, 2), others' future (n, T_p, N, 2), yield flag (n,) from split arrays:
+    every window whose run goes on T_p steps with the same cars in its slots."""
     runs = list(zip(a["episode"], a["branch"], a["step"]))  # a counterfactual branch is a run of its own
     key = {r: i for i, r in enumerate(runs)}
     starts, futures = [], []
     for i, (e, b, s) in enumerate(runs):
         chain = [key.get((e, b, s + k)) for k in range(t_p)]
-        if None not in chain:
+        if None not in chain and (a["ids"][chain] == a["ids"][i]).all():
             starts.append(i)
             futures.append(a["Y"][chain])
     starts, futures = np.array(starts, dtype=int), np.array(futures, dtype=float).reshape(-1, t_p, *a["Y"].shape[1:])

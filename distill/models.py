@@ -18,6 +18,15 @@ NAMES = ("teacher", "student", "cv")
 NETS = {"teacher": "distill.teacher.SocialTeacher", "student": "distill.student.GeluStudent"}  # the network class of each
 
 
+def window_of(module) -> tuple:
+    """(T_obs, M) of the windows (B, T_obs, M, 2) a network takes, read from its weights: the student's feature map P
+    fixes both, the teacher's slot embeddings fix M (its GRU reads any T_obs); None where nothing fixes one."""
+    if hasattr(module, "P"):
+        m = len(module.s) // 2 + 1  # the head bounds x and y of every car but the ego
+        return module.P.shape[1] // (2 * m), m
+    return None, module.slot.shape[0] if hasattr(module, "slot") else None
+
+
 class TorchPredictor:
     """A torch network as a numpy predictor: forward in the network's dtype, Jacobians by reverse-mode autodiff."""
 
@@ -25,6 +34,7 @@ class TorchPredictor:
         """name for reports; module maps a torch window (B, T_obs, SLOTS, 2) to next (B, SLOTS, 2), metres."""
         self.name, self.module = name, module.eval()
         self.dtype = next(module.parameters()).dtype
+        self.window = window_of(module)
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2) in metres, float64."""

@@ -18,7 +18,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, mlflow_run, staged, tracking_uri, writable
+from core.jobs import CONF_DIR, UserError, mlflow_run, quiet, staged, tracking_uri, writable
 from data import dataset
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
@@ -44,9 +44,12 @@ def quiet_lightning_tips():
 
 
 def make_trainer(cfg_trainer: DictConfig, **kwargs) -> L.Trainer:
-    """The Trainer of cfg_trainer, its callbacks given by name in the config (a null one is left out), as a list."""
+    """The Trainer of cfg_trainer, its callbacks given by name in the config (a null one is left out), as a list; no
+    progress bar when stderr is not a terminal (core.jobs.quiet: a redirected log would fill with redraws)."""
     quiet_lightning_tips()
     spec = OmegaConf.to_container(cfg_trainer, resolve=True)
+    if quiet():
+        spec["enable_progress_bar"] = False
     callbacks = [instantiate(c) for c in spec.pop("callbacks", {}).values() if c is not None]
     return instantiate(spec, callbacks=callbacks, **kwargs)
 

@@ -6,15 +6,17 @@ Episodes run on local joblib processes (`backend=loky`, the default) or on a Ray
 backend; `ray.address=auto` or `ray://host:10001` joins a running cluster, null starts a local instance). Either way an
 episode depends only on its seed, so both give the same per-episode results.
 
-An episode that raises is recorded as a crash with its message in the CSV; the batch goes on. Rates and means are
-over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size. The headline is the
-courteous-merge rate (data.outcomes). Intervals (core.stats): Wilson for `courteous`, `merged` and `collision`
+An episode that raises is recorded as a crash with its message in the CSV; the batch goes on, and then fails with the
+count (exit 2, MLflow run FAILED) unless `tolerate_crashes=true`; a batch in which every episode crashed always fails.
+Rates and means are over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size.
+The headline is the courteous-merge rate (data.outcomes). Intervals (core.stats): Wilson for `courteous`, `merged` and `collision`
 (`courteous_lo`, `courteous_hi`, ...), Student t for the means of t_merge, C_max, fallbacks and b_imposed_max.
 """
 import contextlib
 import csv
 import logging
 import os
+import signal
 import sys
 
 import matplotlib
@@ -27,7 +29,7 @@ from omegaconf import OmegaConf  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 from core import stats  # noqa: E402
-from core.jobs import UserError, mlflow_run  # noqa: E402
+from core.jobs import UserError, mlflow_run, quiet  # noqa: E402
 from planner import report, setup  # noqa: E402
 
 FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
@@ -72,11 +74,6 @@ def aggregate(rows, step_ms, iters) -> dict:
             "d_min_m": safe(np.min, [r["d_min_m"] for r in done]), "ttc_min": safe(np.min, [r["ttc_min"] for r in done]),
             "step_ms_median": safe(np.median, step_ms), "step_ms_p95": safe(lambda a: np.percentile(a, 95), step_ms),
             "admm_iters_mean": safe(np.mean, iters), **stats.outcomes([done])}
-
-
-def quiet() -> bool:
-    """No progress bars under CI (the CI variable set, as every CI service does) or when stderr is not a terminal."""
-    return bool(os.environ.get("CI")) or not sys.stderr.isatty()
 
 
 def progress(iterable, total: int, desc: str):
@@ -131,6 +128,17 @@ def histograms(rows, step_ms, out_dir, tag, title):
     return paths
 
 
+def start_workers(n_jobs) -> None:
+    """Start joblib's loky workers with SIGINT blocked, a mask they inherit: Ctrl-C, which reaches every process of the
+    terminal's group, stops the batch through this process alone (a worker hit while importing would print its own
+    traceback); one that arrives meanwhile is delivered here as soon as the mask is lifted."""
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        Parallel(n_jobs=n_jobs)(delayed(os.getpid)() for _ in range(effective_n_jobs(n_jobs)))  # later calls reuse them
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
 def drive_all(cfg, method: str) -> list:
     """[episode(...)] for seeds cfg.seed .. cfg.seed + cfg.episodes - 1, over cfg.n_jobs workers of cfg.backend, in seed
     order, with a progress bar."""
@@ -140,6 +148,7 @@ def drive_all(cfg, method: str) -> list:
     out = []
     with backend(cfg), progress(None, len(seeds), f"{method} episodes") as bar:
         if cfg.backend == "loky":  # results stream back one by one
+            start_workers(cfg.n_jobs)
             for o in Parallel(n_jobs=cfg.n_jobs, return_as="generator")(tasks(seeds)):
                 out.append(o)
                 bar.update()
@@ -151,34 +160,42 @@ def drive_all(cfg, method: str) -> list:
     return out
 
 
-def record(cfg, scenario, source, s, method: str, out: list, out_dir) -> dict:
-    """Aggregate drive_all's output, write the CSV and histograms to out_dir, log one MLflow run; returns its metrics."""
+def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
+    """One method's batch inside its MLflow run, opened first (a stopped batch ends KILLED): drive_all, aggregate, write
+    the CSV and histograms to out_dir and log them; returns its metrics. Crashed episodes then fail the run with their
+    count (UserError), unless cfg.tolerate_crashes; a batch whose every episode crashed always fails."""
     import mlflow
 
-    rows = [o[0] for o in out]
-    step_ms = [t for o in out for t in o[1]]
-    r = aggregate(rows, step_ms, [k for o in out for k in o[2]])
     tag = f"{method}_{source.name}_{scenario.name}"
-    title = f"{scenario.name}, {method}, gradients={source.name}: {len(rows)} episodes"
-    csv_path = out_dir / f"episodes_{tag}.csv"
-    write_csv(rows, csv_path)
-    plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
     with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario.name}", method=method,
-                    episodes=len(rows), **setup.run_params(scenario, source, cfg.zstep, cfg.seed, cfg.solver.name)):
+                    episodes=cfg.episodes, **setup.run_params(scenario, source, cfg.zstep, cfg.seed, cfg.solver.name)):
+        out = drive_all(cfg, method)
+        rows = [o[0] for o in out]
+        step_ms = [t for o in out for t in o[1]]
+        r = aggregate(rows, step_ms, [k for o in out for k in o[2]])
+        title = f"{scenario.name}, {method}, gradients={source.name}: {len(rows)} episodes"
+        csv_path = out_dir / f"episodes_{tag}.csv"
+        write_csv(rows, csv_path)
+        plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
         mlflow.log_metrics(r)
         mlflow.log_artifact(str(csv_path))
         for p in plots:
             mlflow.log_artifact(str(p), "plots")
-    for e in sorted({row["error"] for row in rows if row["crash"]}):
-        log.info(f"[{method}] crash: {e}")
-    ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
-    log.info(f"[{method}] {title} (95% intervals): courteous merges {ci('courteous', '.1%')}, merged {ci('merged', '.1%')}, collision {ci('collision', '.1%')}, "
-             f"t_merge {ci('t_merge', '.1f')} steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / "
-             f"{r['step_ms_p95']:.1f} p95, fallbacks per episode {ci('fallbacks', '.2f')}, {r['crashes']:.0f} crashes, "
-             f"{r['nans']:.0f} NaN episodes; outputs in {out_dir}")
+        errors = sorted({row["error"] for row in rows if row["crash"]})
+        for e in errors:
+            log.info(f"[{method}] crash: {e}")
+        ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
+        log.info(f"[{method}] {title} (95% intervals): courteous merges {ci('courteous', '.1%')}, merged {ci('merged', '.1%')}, collision {ci('collision', '.1%')}, "
+                 f"t_merge {ci('t_merge', '.1f')} steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / "
+                 f"{r['step_ms_p95']:.1f} p95, fallbacks per episode {ci('fallbacks', '.2f')}, {r['crashes']:.0f} crashes, "
+                 f"{r['nans']:.0f} NaN episodes; outputs in {out_dir}")
+        crashes = int(r["crashes"])
+        if crashes == len(rows) or (crashes and not cfg.tolerate_crashes):
+            keep = "" if crashes == len(rows) else "; tolerate_crashes=true keeps such a batch"
+            raise UserError(f"{crashes} of {len(rows)} {method} episodes crashed (first: {errors[0]}); see {csv_path}{keep}")
     return r
 
 
 def run(cfg, scenario, source, s, methods, out_dir) -> dict:
     """Drive cfg.episodes episodes per method, write and log each method's batch; returns {method: metrics}."""
-    return {m: record(cfg, scenario, source, s, m, drive_all(cfg, m), out_dir) for m in methods}
+    return {m: record(cfg, scenario, source, s, m, out_dir) for m in methods}

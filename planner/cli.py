@@ -13,7 +13,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, options, writable
+from core.jobs import CONF_DIR, check_overrides, guarded, mlflow_run, open_experiment, writable
 from planner import batch, report
 from planner.setup import drive, run_params, setup
 
@@ -34,25 +34,13 @@ def translate(argv):
     return out
 
 
-def check_groups(argv):
-    """One clear line, before Hydra, for a config-group override naming an option that does not exist (each value of a
-    comma-separated sweep checked)."""
-    for a in argv:
-        key, _, value = a.lstrip("+~").partition("=")
-        choices = options(key)  # none: not a config group
-        if not value or not choices:
-            continue
-        for v in value.split(","):
-            if v not in choices:
-                raise UserError(f"unknown {key} '{v}'; choose one of {', '.join(choices)}")
-
-
 @guarded
 def run(cfg: DictConfig) -> dict:
     """Drive, log and summarise (cfg.episodes > 0: batch statistics, see planner.batch); returns {method: metrics}."""
     validate.check(cfg, "planner")
     scenario, source, s = setup(cfg)
     out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir), "out_dir")
+    open_experiment("planner")  # an unusable store fails now, not after the episodes
     methods = list(cfg.method)
     if cfg.episodes:
         return batch.run(cfg, scenario, source, s, methods, out_dir)
@@ -89,9 +77,9 @@ def hydra_main(cfg: DictConfig) -> None:
 
 @guarded
 def prepare(argv):
-    """The argv Hydra will read: --gradients translated, config-group options checked."""
+    """The argv Hydra will read: --gradients translated, config-group options and keys checked."""
     argv = translate(argv)
-    check_groups(argv[1:])
+    check_overrides("planner", argv[1:])
     return argv
 
 

@@ -1,10 +1,12 @@
 """`compare`: prediction, gradient and interaction accuracy beside planning speed and outcomes, one row per comparable set-up.
 
-Rows come from the `planner` experiment grouped by the run params that define a comparable run (`group_by`: scenario,
-world, gradient source, predictor, method, Z-step, linearisation, T_p, rho, max_steps, the episode seeds); runs that
-share all of them (repeated trainings, re-runs) are pooled and listed in the row's `runs` column. A batch run counts as
-`episodes` episodes (the row's `n_episodes` sums them): its `courteous`/`merged`/`collision` metrics are rates (95% Wilson intervals over the pooled episodes), the
-others means; t_merge is averaged over merged episodes only.
+Rows come from the `planner` experiment: runs equal in every param they logged (the planner's whole flattened config and
+its set-up params: scenario, gradients, predictor, method, zstep, solver, seed, episodes), but the few in `ignore` that
+never change an outcome, are pooled and listed in the row's `runs` column; a run's config of a method it was not (a
+`method=both` run logs both) is not compared. A batch run counts as `episodes` episodes (the row's `n_episodes` sums
+them): its `courteous`/`merged`/`collision` metrics are rates (95% Wilson intervals over the pooled episodes), the
+others means; t_merge is averaged over merged episodes only. The table shows the `columns` params, then every other
+param that differs between rows.
 
 Accuracy columns belong to the row's predictor and gradient source: the latest `distill` run of its model (constant
 velocity: the `cv_*` metrics that run logs beside its own; the analytic predictor is not measured), the latest
@@ -21,7 +23,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from core import stats, validate
-from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, guarded, mlflow_run, options
+from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, console, guarded, mlflow_run, open_experiment, options
 from planner.gradients import predictor_of
 
 log = logging.getLogger(__name__)
@@ -61,21 +63,31 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     return row
 
 
-def param_frame(runs: pd.DataFrame, group_by) -> pd.DataFrame:
-    """The `group_by` params of each run as strings, '-' where a run did not log one (older runs)."""
-    return pd.DataFrame({p: runs[f"params.{p}"].fillna("-") if f"params.{p}" in runs else "-" for p in group_by},
-                        index=runs.index)
+def param_frame(runs: pd.DataFrame, columns, ignore) -> pd.DataFrame:
+    """Every param the runs logged but those in `ignore` (a key or a prefix of keys), and every one of `columns`, as
+    strings: '-' where a run did not log it (older runs) or where it configures a method the run was not."""
+    ignored = lambda p: any(p == i or p.startswith(f"{i}.") for i in ignore)
+    logged = [c[len("params."):] for c in runs.columns if c.startswith("params.")]
+    keys = list(dict.fromkeys([*columns, *(p for p in logged if not ignored(p))]))
+    frame = pd.DataFrame({p: runs[f"params.{p}"].fillna("-") if f"params.{p}" in runs else "-" for p in keys}, index=runs.index)
+    if "method" in frame:
+        for p in keys:
+            if p.startswith("method."):
+                frame.loc[frame["method"] != p.split(".")[1], p] = "-"
+    return frame
 
 
-def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame, group_by,
-          interaction_runs: pd.DataFrame | None = None) -> pd.DataFrame:
-    """One row per combination of `group_by` params: the runs pooled, episode-weighted outcomes with 95% intervals,
-    median step times, accuracy."""
+def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame, columns,
+          interaction_runs: pd.DataFrame | None = None, ignore=()) -> pd.DataFrame:
+    """One row per combination of the compared params (param_frame): the runs pooled, episode-weighted outcomes with 95%
+    intervals, median step times, accuracy. Its param columns, `columns` then every other that differs between rows,
+    are listed in df.attrs["params"]."""
     runs = planner_runs[planner_runs["status"] == "FINISHED"].copy() if not planner_runs.empty else planner_runs
     if runs.empty:
         raise UserError("no finished planner runs in the MLflow store: run `planner` first")
     interaction_runs = pd.DataFrame() if interaction_runs is None else interaction_runs
-    keys = param_frame(runs, group_by)
+    keys = param_frame(runs, columns, ignore)
+    group_by = list(keys.columns)
     runs["n"] = runs["metrics.episodes"].fillna(1.0) if "metrics.episodes" in runs else 1.0
     rows = []
     for key, g in runs.groupby([keys[p] for p in group_by]):
@@ -97,7 +109,11 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
         row.update(accuracy(gradients, predictor, distill_runs, surrogate_runs, interaction_runs))
         row["runs"] = " ".join(sorted(r[:8] for r in g["run_id"])) if "run_id" in g else ""
         rows.append(row)
-    return pd.DataFrame(rows).sort_values(list(group_by)).reset_index(drop=True)
+    df = pd.DataFrame(rows)
+    params = [*columns, *(p for p in group_by if p not in columns and df[p].nunique() > 1)]
+    df = df[params + [c for c in df.columns if c not in group_by]].sort_values(params).reset_index(drop=True)
+    df.attrs["params"] = params
+    return df
 
 
 def label(r: pd.Series, varying) -> str:
@@ -166,8 +182,10 @@ SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi
 def run(cfg: DictConfig) -> pd.DataFrame:
     """Build the table, print it, write compare.csv and compare.png, log both to MLflow (experiment `compare`)."""
     validate.check(cfg, "compare")
-    group_by = list(cfg.group_by)
-    df = table(search(cfg.experiment, cfg.scenario), search("distill"), search("surrogate"), group_by, search("interaction"))
+    open_experiment("compare")  # one line if the store is unusable, before the searches
+    df = table(search(cfg.experiment, cfg.scenario), search("distill"), search("surrogate"), list(cfg.columns),
+               search("interaction"), list(cfg.ignore))
+    group_by = df.attrs["params"]
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "compare.csv", index=False)
@@ -187,5 +205,10 @@ def run(cfg: DictConfig) -> pd.DataFrame:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="compare")
-def main(cfg: DictConfig) -> None:
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point."""
+    console("compare", hydra_main)

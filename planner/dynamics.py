@@ -41,7 +41,7 @@ def linearize(z0, delta_prev, a_prev, params: bicycle.BicycleParams, T_p: int, p
     C[rows, rows] = -1.0  # -I on the block diagonal, C~ of step tau at block (tau, tau - 1)
     r, c = np.divmod(np.arange(16), 4)
     C[(4 * np.arange(1, T_p)[:, None] + r).ravel(), (4 * np.arange(T_p - 1)[:, None] + c).ravel()] = \
-        np.concatenate([b[2].ravel() for b in blocks[1:]])
+        np.array([b[2].ravel() for b in blocks[1:]]).reshape(-1)  # empty for T_p = 1: concatenate refuses no blocks
     D = np.concatenate([b[3] for b in blocks])
     D[:4] += blocks[0][2] @ np.asarray(z0, float)
     return Dynamics(A, B, C, D)

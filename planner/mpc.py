@@ -1,13 +1,14 @@
 """One receding-horizon step: build the MPC about the observation, warm-start from the shifted plan, solve, fall back.
 
-A step never raises for a bad observation, a solver failure or an unsafe result: it returns the shifted previous plan
-(if the predictor still finds it safe) or braking in lane, with the reason.
+A step never raises for a bad observation, a solver failure, any other error in building or solving it, or an unsafe
+result: it returns the shifted previous plan (if the predictor still finds it safe) or braking in lane, with the reason.
 """
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
+from core.jobs import UserError
 from core.rollout import b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
@@ -196,6 +197,14 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         st, solve = admm.admm_solve(prob, solvers, start, *s.admm)
     except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
         return fallback(s, obs, source, warm, f"solver failure ({e})")
+    except UserError:  # the user's to fix (a missing optional solver): one line, not a fallback every step
+        raise
+    except Exception as e:  # anything else the config check let through (planner.setup): a fallback with its reason
+        why = f"step error ({type(e).__name__}: {str(e)[:200]})"
+        try:
+            return fallback(s, obs, source, warm, why)
+        except Exception:  # the predictor cannot judge the shifted plan either: brake in lane
+            return fallback(s, obs, source, None, why)
     if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
         return fallback(s, obs, source, warm, "non-finite iterate")
     b_min = min(plan_safe(s, obs, source, st.Delta, st.alpha)[0], solve.zinfo.get("b_min", np.inf))

@@ -62,7 +62,19 @@ def setup(cfg: DictConfig):
     if needs_world and cfg.world != "reactive":
         raise UserError("gradients=oracle predicts with the world's own drivers; it needs world=reactive")
     scenario = build(cfg.scenario)
-    return scenario, build(cfg.gradients), settings(cfg, scenario)
+    source = build(cfg.gradients)
+    check_window(cfg, source.predictor)
+    return scenario, source, settings(cfg, scenario)
+
+
+def check_window(cfg: DictConfig, predictor) -> None:
+    """One UserError unless `predictor` takes the planner's windows (T_obs, n_slots + 1): a trained model's `window`
+    (distill.models.window_of; None where any size goes) must match, or its first call inside an MPC step would fail."""
+    T_obs, M = getattr(predictor, "window", (None, None))
+    if (T_obs is not None and cfg.T_obs != T_obs) or (M is not None and cfg.n_slots + 1 != M):
+        raise UserError(f"T_obs={cfg.T_obs}, n_slots={cfg.n_slots}: the {predictor.name} model takes windows of "
+                        f"{'any T_obs' if T_obs is None else f'T_obs={T_obs}'} and {'any n_slots' if M is None else f'n_slots={M - 1}'}; "
+                        "set those, or retrain")
 
 
 def make(scenario: str = "two_lane", overrides=()):

@@ -14,7 +14,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, guarded, mlflow_run, staged, writable
+from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, staged, writable
 from data import dataset
 from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
@@ -132,5 +132,10 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="surrogate")
-def main(cfg: DictConfig) -> None:
+def hydra_main(cfg: DictConfig) -> None:
     run(cfg)
+
+
+def main() -> None:
+    """Console entry point."""
+    console("surrogate", hydra_main)

@@ -149,7 +149,7 @@ def test_shipped_configs_pass_their_schema(config, overrides):
                                                    + ", ".join(options("gradients"))),
     ("results", "results_preset.training_seeds=[]", "error: results_preset.training_seeds=[]: must be a list of at least 1, "
                                                     "each an integer in [0, 4294967295]"),
-    ("compare", "group_by=[]", "error: group_by=[]: must be a list of at least 1, each a non-empty string"),
+    ("compare", "columns=[]", "error: columns=[]: must be a list of at least 1, each a non-empty string"),
     ("bench", "step_time.repeats=0", "error: step_time.repeats=0: must be an integer >= 1"),
     ("bench", "states.gradients=oracel", "error: states.gradients=oracel: must be one of " + ", ".join(options("gradients"))),
 ])

@@ -5,7 +5,6 @@ from hydra.utils import instantiate
 
 from bench import ceiling
 from conftest import compose_cfg
-from core.jobs import UserError
 from data import outcomes, perception
 from data.drivers import IDMDriver
 from data.world import World, backfill
@@ -80,22 +79,18 @@ def test_slots_are_the_nearest_cars_in_id_order_with_their_own_histories():
     assert np.allclose(perception.observe(fresh, 4, 8).history[:, 0], backfill(fresh.states(), 8, sc.params.dt)[:, 0])
 
 
-def test_dense_traffic_is_calm_with_the_ego_held_in_its_lane():
-    sc = scenario("dense")
+@pytest.mark.parametrize("name", ["dense", "random", "two_lane", "three_lane"])
+def test_traffic_is_calm_with_the_ego_held_in_its_lane(name):
+    sc = scenario(name)
     for seed in range(3):
-        world = sc.make_world(seed)
-        states = [world.states()]
-        for _ in range(40):
-            z = world.states()[0]
-            world.step([0.0, float(np.clip(np.sqrt(5.0 * max(0.0, sc.x_ref - 2.0 - z[0])) - z[3], -3.0, 1.0))])
-            states.append(world.states())
-        assert outcomes.b_imposed_max(np.array(states), sc.params.dt) <= 2.0, f"seed {seed}"
-        assert world.collisions == []
+        assert ceiling.held_in_lane(sc.make_world(seed), sc, 60) <= 2.0, f"seed {seed}"
 
 
-def test_a_stream_too_short_for_its_promise_is_one_clear_line():
-    with pytest.raises(UserError, match="scenario.followers=6: the stream reaches"):
-        scenario("dense", "scenario.followers=6").make_world(0)
+def test_a_stream_too_short_for_its_promise_is_one_clear_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        ceiling.run(compose_cfg("ceiling", ["scenario.followers=6", f"out_dir={tmp_path / 'out'}"]))
+    assert e.value.code == 2 and not (tmp_path / "out").exists()
+    assert capsys.readouterr().err.startswith("error: scenario.followers=6: the stream may reach only 2 m behind the ego")
 
 
 def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():

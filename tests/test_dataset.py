@@ -63,7 +63,8 @@ def test_windows_are_consistent_with_the_episode_and_splits_disjoint(tiny_datase
     assert sum(len(e) for e in episodes) == meta["stats"]["episodes"]
     tr = splits["train"]
     # consecutive windows of one episode overlap: the target of step t is the last observation of step t+1
-    same = (tr["episode"][1:] == tr["episode"][:-1]) & (tr["branch"][1:] == tr["branch"][:-1]) & (tr["step"][1:] == tr["step"][:-1] + 1)
+    same = (tr["episode"][1:] == tr["episode"][:-1]) & (tr["branch"][1:] == tr["branch"][:-1]) & \
+        (tr["step"][1:] == tr["step"][:-1] + 1) & (tr["ids"][1:] == tr["ids"][:-1]).all(1)  # slots: the nearest cars
     assert same.sum() > 100
     np.testing.assert_allclose(tr["Y"][:-1][same], tr["X"][1:][same][:, -1])
     # others move forward about dt * speed (m), never backwards

@@ -164,8 +164,8 @@ def test_branch_pairs_share_the_hidden_decisions(pairs):
         for w in worlds:
             assert np.array_equal(w.will_yield, p.world.will_yield)
             assert w.drivers == p.world.drivers
-        assert np.array_equal(execute(p.world, p.controls[0])[0], p.xy[0])  # replaying a plan gives the same world
-        assert np.array_equal(execute(p.world, p.controls[1])[0], p.xy[1])
+        assert np.array_equal(execute(p.world, p.controls[0], p.ids)[0], p.xy[0])  # replaying a plan gives the same world
+        assert np.array_equal(execute(p.world, p.controls[1], p.ids)[0], p.xy[1])
         assert np.array_equal(p.ego[0], execute(p.world, p.controls[0])[0][:, 0])
     world = pairs[0].world
     rng = np.random.default_rng(0)

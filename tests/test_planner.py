@@ -9,6 +9,7 @@ from scipy import sparse
 from test_configs import drift
 
 from bench.branches import ego_controls, execute
+from core import jobs
 from core.jobs import CONF_DIR, UserError
 from core.rollout import ego_xy
 from data import perception
@@ -132,10 +133,10 @@ def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
 def test_unknown_names_and_missing_models_are_one_line_errors(tmp_path):
     choices = "choose one of analytic, cv, fd, oracle, student, surrogate, teacher"
     with pytest.raises(UserError, match=f"unknown gradients 'bogus'; {choices}"):
-        cli.check_groups(["gradients=bogus"])
+        jobs.check_groups(["gradients=bogus"])
     with pytest.raises(UserError, match="unknown zstep 'nope'; choose one of pygranso, sqp"):
-        cli.check_groups(["-m", "zstep=sqp,nope"])  # every value of a sweep
-    cli.check_groups(["gradients=cv,student", "method=both", "seed=3"])
+        jobs.check_groups(["-m", "zstep=sqp,nope"])  # every value of a sweep
+    jobs.check_groups(["gradients=cv,student", "method=both", "seed=3"])
     with pytest.raises(UserError, match="surrogate.onnx not found: run `surrogate`"):
         source("surrogate", "predictor=analytic", f"models_dir={tmp_path}")
     with pytest.raises(UserError, match="distill model=teacher"):

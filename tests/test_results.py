@@ -1,5 +1,5 @@
 """`results`: the tiny preset runs every job from scratch and writes Markdown tables and figures whose numbers are the
-MLflow runs' and the batches' episodes'; planner seeds that were the dataset's are refused."""
+MLflow runs', the batches' episodes' and the ceiling's worlds'; planner seeds that were the dataset's are refused."""
 import csv
 import re
 from pathlib import Path
@@ -25,22 +25,51 @@ def test_planner_seeds_that_were_dataset_episodes_are_refused(tmp_path, capsys):
         results.run(cfg)
 
 
-def cell(md: str, first: str, second: str, column: int) -> str:
-    """The `column`-th cell of the Markdown row starting | first | second |."""
-    row = next(line for line in md.splitlines() if line.startswith(f"| {first} | {second} |"))
+def section(md: str, title: str) -> str:
+    """The text of the Markdown section `## title`, up to the next one."""
+    return md.split(f"## {title}\n")[1].split("\n## ")[0]
+
+
+def cell(md: str, title: str, first: str, second: str, column: int) -> str:
+    """The `column`-th cell of the row starting | first | second | in section `title`."""
+    row = next(line for line in section(md, title).splitlines() if line.startswith(f"| {first} | {second} |"))
     return row.split("|")[1:-1][column].strip()
 
 
-def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tmp_path):
-    out = tmp_path / "results"
-    path = results.run(compose_cfg("results", ["results_preset=tiny", f"out_dir={out}", f"work_dir={tmp_path / 'work'}",
+def numbers(text: str) -> list[float]:
+    """The decimal numbers of a cell: [value] or [value, lo, hi]."""
+    return [float(x) for x in re.findall(r"-?\d+\.\d+", text)]
+
+
+def rate_cell(values) -> list[float]:
+    """What a rate cell must show for 0/1 values, in %: the share and its Wilson interval (by the score test's roots)."""
+    k, n = float(np.sum(values)), len(values)
+    return [100 * k / n, *(100 * np.array(wilson_by_roots(k, n)))]
+
+
+def episodes_csv(folder: str, method: str) -> list[dict]:
+    """The finished episodes of a batch's per-episode CSV."""
+    rows = csv.DictReader(open(next(Path(folder).glob(f"episodes_{method}_*.csv"))))
+    return [{k: float(v) for k, v in r.items() if k not in ("error", "notes")} for r in rows if r["crash"] == "0"]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """(report folder, work folder, Markdown) of one run of the tiny preset."""
+    root = tmp_path_factory.mktemp("results")
+    path = results.run(compose_cfg("results", ["results_preset=tiny", f"out_dir={root / 'out'}", f"work_dir={root / 'work'}",
                                                "n_jobs=1"]))
-    md = path.read_text()
-    for f in ("merge_rate.png", "t_merge.png", "fallbacks.png", "interaction_vs_step_time.png", "snapshots_admm.png"):
+    return root / "out", root / "work", path.read_text()
+
+
+def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
+    out, work, md = tiny
+    for f in ("b_imposed.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "interaction_vs_step_time.png",
+              "snapshots_admm.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG" and f in md
     assert (out / "merge_admm.gif").read_bytes()[:3] == b"GIF"
     planner = mlflow.search_runs(experiment_names=["planner"])
-    work = str(tmp_path / "work")
+    work = str(work)
     mine = planner[planner["params.out_dir"].str.startswith(work)]
     for source in ("cv", "student"):  # one training: the pooled rates are the batch run's own
         for method in ("admm", "nnmpc"):
@@ -50,9 +79,9 @@ def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tmp_path):
             episodes = csv.DictReader(open(next(Path(r["params.out_dir"].iloc[0]).glob(f"episodes_{method}_*.csv"))))
             merged = [float(e["merged"]) for e in episodes if e["crash"] == "0"]
             k, n = sum(merged), len(merged)
-            shown = [float(x) for x in re.findall(r"\d+\.\d", cell(md, source, method.upper(), 3))]  # rate [lo, hi], %
+            shown = [float(x) for x in re.findall(r"\d+\.\d", cell(md, "Random merges", source, method.upper(), 3))]  # %
             assert shown == pytest.approx([100 * k / n, *(100 * np.array(wilson_by_roots(k, n)))], abs=0.051)
-            assert cell(md, source, method.upper(), 2) == f"1 x {n}"
+            assert cell(md, "Random merges", source, method.upper(), 2) == f"1 x {n}"
     distill = mlflow.search_runs(experiment_names=["distill"])
     teacher = distill[(distill["params.models_dir"].str.startswith(work)) & (distill["params.model"] == "teacher")]
     assert len(teacher) == 1
@@ -65,3 +94,60 @@ def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tmp_path):
     row = next(line for line in section.splitlines() if line.startswith("| student | "))
     assert float(row.split("|")[5]) == pytest.approx(student["metrics.react_corr_jac"].iloc[0], abs=5e-4)
     assert np.isfinite(float(row.split("|")[2]))
+
+
+def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
+    _, work, md = tiny
+    assert md.index("## Dense traffic (headline)") < md.index("## Ceiling calibration") < md.index("## Predictors")
+    worlds = {sc: list(csv.DictReader(open(work / "ceiling" / f"ceiling_{sc}.csv")))
+              for sc in ("dense", "random", "two_lane", "three_lane")}
+    assert [len(w) for w in worlds.values()] == [2, 2, 1, 1]  # tiny: dense_episodes, calibration_episodes, table2_episodes
+    dense = [{k: float(v) for k, v in w.items() if not k.endswith("_policy")} for w in worlds["dense"]]
+    assert [w["seed"] for w in dense] == [2000000, 2000001]  # the planner's held-out worlds
+    planner = mlflow.search_runs(experiment_names=["planner"])
+    mine = planner[planner["params.out_dir"].str.startswith(str(work)) & (planner["params.scenario"] == "dense")]
+    best = {w["seed"]: w["ceiling_t_merge"] if w["ceiling_courteous"] else np.inf for w in dense}
+    beat = set()
+    for source in ("cv", "student"):
+        for method in ("admm", "nnmpc"):
+            r = mine[(mine["params.gradients"] == source) & (mine["params.method"] == method)]
+            assert len(r) == 1
+            eps = episodes_csv(r["params.out_dir"].iloc[0], method)
+            assert [e["seed"] for e in eps] == [2000000, 2000001]
+            row = lambda c: numbers(cell(md, "Dense traffic (headline)", source, method.upper(), c))
+            assert cell(md, "Dense traffic (headline)", source, method.upper(), 2) == "1 x 2"
+            assert row(3) == pytest.approx(rate_cell([e["courteous"] for e in eps]), abs=0.051)
+            assert row(4) == pytest.approx(rate_cell([e["merged"] for e in eps]), abs=0.051)
+            assert row(6)[0] == pytest.approx(np.mean([e["b_imposed_max"] for e in eps]), abs=0.0051)
+            assert row(7) == pytest.approx(rate_cell([e["collision"] for e in eps]), abs=0.051)
+            beat |= {e["seed"] for e in eps if e["courteous"] and e["t_merge"] < best[e["seed"]]}
+    for search, name in (("ceiling", "ceiling"), ("never_yield", "never-yield ceiling")):
+        row = lambda c: cell(md, "Dense traffic (headline)", name, "-", c)
+        hits = [w[f"{search}_courteous"] for w in dense]
+        assert numbers(row(3)) == pytest.approx(rate_cell(hits), abs=0.051)
+        t = [w[f"{search}_t_merge"] for w in dense if w[f"{search}_courteous"]]
+        assert (numbers(row(5))[:1] == pytest.approx([np.mean(t)], abs=0.051)) if t else row(5) == "-"
+        assert numbers(row(6))[0] == pytest.approx(np.mean([w[f"{search}_b_imposed"] for w in dense]), abs=0.0051)
+        assert row(4) == row(7) == row(8) == "-"  # the search neither reports plain merges, collisions nor fallbacks
+    assert f"planner beat the ceiling on {len(beat)} worlds of 2" in md
+    for sc, rows in worlds.items():
+        row = lambda c: cell(md, "Ceiling calibration", sc, str(len(rows)), c)
+        assert numbers(row(2)) == pytest.approx(rate_cell([float(w["ceiling_courteous"]) for w in rows]), abs=0.051)
+        assert numbers(row(3)) == pytest.approx(rate_cell([float(w["never_yield_courteous"]) for w in rows]), abs=0.051)
+        assert numbers(row(5)) == pytest.approx([max(float(w["held_b_imposed"]) for w in rows)], abs=0.0051)
+    header = next(line for line in section(md, "Table II: two_lane").splitlines() if line.startswith("| gradients |"))
+    header = [h.strip() for h in header.split("|")[1:-1]]
+    assert header[3:5] == ["courteous % [95% CI]", "merged % [95% CI]"]
+    (w,) = worlds["two_lane"]
+    shown = cell(md, "Table II: two_lane", "cv", "ADMM", header.index("ceiling t_merge steps [95% CI]"))
+    assert shown == (f"{float(w['ceiling_t_merge']):.1f}" if float(w["ceiling_courteous"]) else "-")
+
+
+def test_a_planner_beats_the_ceiling_with_a_courteous_merge_it_missed_or_made_later():
+    worlds = [{"seed": 1, "ceiling_courteous": 1.0, "ceiling_t_merge": 20.0},
+              {"seed": 2, "ceiling_courteous": 0.0, "ceiling_t_merge": 60.0},
+              {"seed": 3, "ceiling_courteous": 1.0, "ceiling_t_merge": 20.0}]
+    episodes = [{"seed": 1, "courteous": 1.0, "t_merge": 19.0}, {"seed": 2, "courteous": 1.0, "t_merge": 59.0},
+                {"seed": 3, "courteous": 1.0, "t_merge": 20.0}]
+    assert results.beaten(worlds, episodes) == {1, 2}
+    assert results.beaten(worlds, [dict(e, courteous=0.0) for e in episodes]) == set()  # a forced merge beats nothing

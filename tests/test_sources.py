@@ -11,9 +11,8 @@ from test_surrogate import smooth_student
 
 from bench import interaction, results
 from core import validate
-from core.jobs import CONF_DIR, UserError
+from core.jobs import CONF_DIR, UserError, check_groups
 from core.rollout import SLOTS, T_OBS
-from planner import cli
 from planner.gradients import available, predictor_of, reads_models, source_class
 from planner.setup import make
 from surrogate.export import export
@@ -47,7 +46,7 @@ def test_the_listed_sources_are_the_yaml_files():
     files = sorted(f[:-5] for f in os.listdir(os.path.join(CONF_DIR, "gradients")) if f.endswith(".yaml"))
     assert available() == files == sorted(EXPECTED)
     with pytest.raises(UserError, match=f"unknown gradients 'nope'; choose one of {', '.join(files)}$"):
-        cli.check_groups(["gradients=nope"])
+        check_groups(["gradients=nope"])
     assert available(needs_world=False) == [f for f in files if f != "oracle"] == list(interaction.SOURCES)
     assert available(torch_rollout=True) == ["teacher"]
     assert results.TRAINED == ("fd", "student", "surrogate", "teacher")
