@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-zstep interaction batch results results-full clean
+.PHONY: demo test bench bench-zstep interaction batch ceiling results results-full clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -46,6 +46,11 @@ interaction: $(STAMP)
 # MLflow run per method; needs `make demo` models; about 40 minutes on 2 cores.
 batch: $(STAMP)
 	$(BIN)/planner scenario=random episodes=1000 seed=2000000 gradients=surrogate method=both
+
+# The clairvoyant ceiling on 200 held-out dense worlds (seeds from 2,000,000) and with every driver stubborn; about 25
+# minutes on 2 cores. The same for other scenarios: `ceiling scenario=random episodes=200`.
+ceiling: $(STAMP)
+	$(BIN)/ceiling scenario=dense episodes=200 seed=2000000
 
 # Every table and figure of the README's Results section from scratch (dataset, 3 trainings per model, held-out batches of
 # every gradient source, Table II scenarios, interaction benchmark, step-time bench): results/README-results.md and

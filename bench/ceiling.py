@@ -1,7 +1,8 @@
 """The clairvoyant ceiling: per world, the fastest courteous merge that a search over ego strategies finds on copies of
 the true world (true hidden decisions), and the same search with every driver made stubborn (`never_yield`).
 
-What it searches: a family of gap-targeting feedback policies (GapPolicy). Each picks one gap of the target lane (the
+What it searches: direct cut-ins (CutInPolicy: keep the lane at the stream's speed plus an offset, turn in at a given
+step, as a planner without a gap model does), then a family of gap-targeting feedback policies (GapPolicy). Each picks one gap of the target lane (the
 gap beside the ego or up to `gaps` gaps ahead or behind), tracks the gap's middle with a speed loop, leans into the
 target lane to one of several depths once near the middle, to ask the gap's follower to yield, and enters once both
 bumper clearances reach a threshold; in the target lane it follows its leader by IDM. Every policy is rolled out in a
@@ -60,8 +61,13 @@ class GapPolicy:
         k = int(np.sum(z[ids, 0] > z[0, 0])) - self.gap  # gap k lies between ids[k-1] and ids[k]
         return (int(ids[k - 1]) if 0 < k <= len(ids) else None), (int(ids[k]) if 0 <= k < len(ids) else None)
 
-    def __call__(self, z, target):
-        """Control [delta (rad), a (m/s^2)] in states z (M, 4) towards the gap target = (front id, back id)."""
+    @property
+    def name(self):
+        """How the search reports this strategy."""
+        return f"gap {self.gap:+d}, lean {self.y_lean} m, clearance {self.clearance} m"
+
+    def __call__(self, z, target, k):
+        """Control [delta (rad), a (m/s^2)] at step k in states z (M, 4) towards the gap target = (front id, back id)."""
         ego, (front, back) = z[0], target
         x_front = z[front, 0] if front is not None else ego[0] + 60.0
         x_back = z[back, 0] if back is not None else ego[0] - 60.0
@@ -82,6 +88,49 @@ class GapPolicy:
 
 
 @dataclass(frozen=True)
+class CutInPolicy:
+    """Keep the lane at the nearby stream's speed plus dv until step `enter`, then steer straight into the target lane
+    and follow its leader by IDM: the direct cut-in that a planner without a gap model makes; SI units."""
+
+    y_ref: float  # target lane centre (m)
+    x_ref: float  # the ego's lane ends here (m)
+    enter: int  # the step at which the ego turns in
+    dv: float  # speed relative to the nearby target-lane cars while waiting (m/s)
+    car_length: float  # m
+    params: BicycleParams
+    k_v: float = 1.5  # speed loop gain (1/s)
+    k_y: float = 2.0  # lateral gain of the steering law (1/s)
+    a_bounds: tuple = (-4.0, 3.0)  # the ego's acceleration limits (m/s^2): the planner's mpc.a_box
+    follow: IDMDriver = field(default_factory=lambda: IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0))
+
+    @property
+    def name(self):
+        """How the search reports this strategy."""
+        return f"cut in at step {self.enter}, stream speed {self.dv:+.1f} m/s"
+
+    def pick(self, z):
+        """No gap chosen in advance: the cut-in takes whatever is beside the ego when it turns."""
+        return None
+
+    def __call__(self, z, target, k):
+        """Control [delta (rad), a (m/s^2)] at step k in states z (M, 4)."""
+        ego = z[0]
+        lane = np.abs(z[1:, 1] - self.y_ref) < 2.0
+        near = lane & (np.abs(z[1:, 0] - ego[0]) < 15.0)
+        ahead = np.flatnonzero(lane & (z[1:, 0] > ego[0])) + 1
+        leader = ahead[np.argmin(z[ahead, 0])] if len(ahead) else None
+        if k >= self.enter:
+            y = self.y_ref
+            a = self.follow.acceleration(ego[3]) if leader is None else \
+                self.follow.acceleration(ego[3], z[leader, 0] - ego[0] - self.car_length, z[leader, 3])
+        else:
+            y = 0.0
+            v_des = (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv
+            a = self.k_v * (min(v_des, np.sqrt(5.0 * max(0.0, self.x_ref - 2.0 - ego[0]))) - ego[3])
+        return np.array([steer_to(ego, y, self.params, k_y=self.k_y), float(np.clip(a, *self.a_bounds))])
+
+
+@dataclass(frozen=True)
 class Outcome:
     """A rollout's result: courteous merge or not, t_merge (steps; max_steps if none), the braking it imposed (m/s^2)."""
 
@@ -91,16 +140,16 @@ class Outcome:
     policy: str
 
 
-def rollout(world: World, policy: GapPolicy, y_ref, x_ref, merge_tol, b_safe, max_steps, settle, best=None) -> Outcome:
+def rollout(world: World, policy, y_ref, x_ref, merge_tol, b_safe, max_steps, settle, best=None) -> Outcome:
     """Drive a copy of `world` with `policy`; stops at failure, after `settle` steps past the merge, or once it cannot
     merge before step `best`."""
     w = world.copy()
     z = w.states()
     target = policy.pick(z)
-    states, t_merge, name = [z], None, f"gap {policy.gap:+d}, lean {policy.y_lean} m, clearance {policy.clearance} m"
+    states, t_merge, name = [z], None, policy.name
     limit = max_steps if best is None else min(max_steps, best - 1)
     for k in range(1, max_steps + 1):
-        hits = w.step(policy(z, target))
+        hits = w.step(policy(z, target, k - 1))
         z = w.states()
         states.append(z)
         b = outcomes.b_imposed_max(states[-2:], w.params.dt)
@@ -114,17 +163,20 @@ def rollout(world: World, policy: GapPolicy, y_ref, x_ref, merge_tol, b_safe, ma
     return Outcome(ok, t_merge if ok else max_steps, outcomes.b_imposed_max(states, w.params.dt), name)
 
 
-def policies(scenario, search) -> list[GapPolicy]:
-    """The searched strategies: every gap within search.gaps of the ego's, every lean depth and clearance."""
+def policies(scenario, search) -> list:
+    """The searched strategies: direct cut-ins at every entry step and speed offset, then every gap within search.gaps
+    of the ego's with every lean depth and clearance."""
     gaps = range(-search.gaps, search.gaps + 1)
-    return [GapPolicy(scenario.y_ref, scenario.x_ref, g, y, c, scenario.road.car_length, scenario.params)
-            for g, y, c in itertools.product(gaps, search.y_lean, search.clearance)]
+    cut_ins = [CutInPolicy(scenario.y_ref, scenario.x_ref, e, dv, scenario.road.car_length, scenario.params)
+               for e, dv in itertools.product(search.enter, search.dv)]
+    return cut_ins + [GapPolicy(scenario.y_ref, scenario.x_ref, g, y, c, scenario.road.car_length, scenario.params)
+                      for g, y, c in itertools.product(gaps, search.y_lean, search.clearance)]
 
 
 def search_world(world: World, scenario, cfg) -> Outcome:
     """The fastest courteous merge over policies() in copies of `world` (or the failure with the least imposed braking)."""
     best = None
-    for p in sorted(policies(scenario, cfg.search), key=lambda p: abs(p.gap)):  # near gaps first: early good bounds
+    for p in policies(scenario, cfg.search):  # cut-ins first: quick merges bound the rest early
         o = rollout(world, p, scenario.y_ref, scenario.x_ref, cfg.merge_tol, scenario.b_safe, cfg.max_steps, cfg.search.settle,
                     best.t_merge if best is not None and best.courteous else None)
         if o.courteous and (best is None or not best.courteous or o.t_merge < best.t_merge):

@@ -358,6 +358,7 @@ CEILING = {
     **SCENARIO, "world": OneOf(("reactive", "predictor")), "seed": SEED, "episodes": Int(1), "n_jobs": N_JOBS,
     "max_steps": Int(1), "merge_tol": POS, "out_dir": Text(nullable=True), "search.gaps": Int(0),
     "search.y_lean": ListOf(POS, at_least=1), "search.clearance": ListOf(NONNEG, at_least=1), "search.settle": Int(0),
+    "search.enter": ListOf(Int(0)), "search.dv": ListOf(Real()),
 }
 
 SCHEMAS = {"make_dataset": MAKE_DATASET, "distill": DISTILL, "surrogate": SURROGATE, "planner": PLANNER, "results": RESULTS,

@@ -60,7 +60,7 @@ def test_never_yield_copy_never_yields():
     policy = ceiling.GapPolicy(sc.y_ref, sc.x_ref, 0, 1.8, 1.0, sc.road.car_length, sc.params)
     target = policy.pick(stubborn.states())
     for _ in range(30):
-        stubborn.step(policy(stubborn.states(), target))
+        stubborn.step(policy(stubborn.states(), target, 0))
         assert not stubborn.yielding.any()
 
 
@@ -94,7 +94,8 @@ def test_a_stream_too_short_for_its_promise_is_one_clear_line(tmp_path, capsys):
 
 
 def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
-    cfg = compose_cfg("ceiling", ["scenario=dense", "search.gaps=1", "search.y_lean=[1.8]", "search.clearance=[1.0]"])
+    cfg = compose_cfg("ceiling", ["scenario=dense", "search.gaps=1", "search.y_lean=[1.8]", "search.clearance=[1.0]",
+                                  "search.enter=[0, 10]", "search.dv=[0.0]"])
     sc = scenario("dense")
     # one wide gap beside the ego: entering needs nobody to yield
     open_lane = lane_world([[9.2, 0.0, 0.0, 5.0], [30.0, 4.0, 0.0, 5.0], [2.0, 4.0, 0.0, 5.0], [-6.0, 4.0, 0.0, 5.0]],
