@@ -79,7 +79,7 @@ def test_slots_are_the_nearest_cars_in_id_order_with_their_own_histories():
     assert np.allclose(perception.observe(fresh, 4, 8).history[:, 0], backfill(fresh.states(), 8, sc.params.dt)[:, 0])
 
 
-@pytest.mark.parametrize("name", ["dense", "random", "two_lane", "three_lane"])
+@pytest.mark.parametrize("name", ["dense", "dense_three_lane", "random", "two_lane", "three_lane"])
 def test_traffic_is_calm_with_the_ego_held_in_its_lane(name):
     sc = scenario(name)
     for seed in range(3):
