@@ -195,8 +195,11 @@ def run(cfg: DictConfig) -> pd.DataFrame:
 
         mlflow.log_artifact(str(out / "compare.csv"))
         mlflow.log_artifact(str(out / "compare.png"))
-    shown = [c for c in group_by if df[c].nunique() > 1 or c in ("gradients", "method")] + SHOWN
-    same = {c: df[c].iloc[0] for c in group_by if c not in shown}
+    lead = [c for c in cfg.columns if c in df]
+    # a param that follows from the `columns` ones (method.nnmpc.* with method) adds nothing to the printed table
+    follows = lambda c: c not in lead and bool(lead) and df.groupby(lead, dropna=False)[c].nunique().max() <= 1
+    shown = [c for c in group_by if (df[c].nunique() > 1 and not follows(c)) or c in ("gradients", "method")] + SHOWN
+    same = {c: df[c].iloc[0] for c in group_by if c not in shown and df[c].nunique() == 1}
     with pd.option_context("display.width", 250, "display.max_columns", 40, "display.precision", 3,
                            "display.max_colwidth", 60):
         log.info("every row: %s\n%s", ", ".join(f"{k}={v}" for k, v in same.items()), df[shown].to_string(index=False))
