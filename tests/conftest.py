@@ -23,6 +23,17 @@ def mlflow_store(tmp_path_factory):
     return os.environ["MLFLOW_TRACKING_URI"]
 
 
+@pytest.fixture()
+def store(tmp_path, monkeypatch):
+    """A fresh MLflow store of the test's own (compare reads every run in a store)."""
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path / 'compare.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    mlflow.set_tracking_uri(uri)
+    return tmp_path
+
+
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     """Root folder of a tiny interaction dataset (train/val/test.npz + meta.json), built once per session."""

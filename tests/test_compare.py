@@ -17,14 +17,6 @@ def log(experiment, params, metrics):
         mlflow.log_metrics(metrics)
 
 
-@pytest.fixture()
-def store(tmp_path, monkeypatch):
-    uri = f"sqlite:///{tmp_path / 'compare.db'}"
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    mlflow.set_tracking_uri(uri)
-    return tmp_path
-
-
 def test_empty_store_says_what_to_run(store):
     with pytest.raises(SystemExit) as e:
         run(compose_cfg("compare", [f"out_dir={store}"]))

@@ -205,14 +205,6 @@ def test_sigint_inside_a_job_ends_its_run_killed():
 
 
 # 6. compare pools only runs whose every outcome-changing param is equal
-@pytest.fixture()
-def store(tmp_path, monkeypatch):
-    uri = f"sqlite:///{tmp_path / 'compare.db'}"
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    mlflow.set_tracking_uri(uri)
-    return tmp_path
-
-
 def test_compare_splits_runs_that_differ_in_any_setting_and_pools_the_rest(store):
     cfg = planner_config("two_lane", ["gradients=cv"])
     base = jobs.flatten(cfg) | {"gradients": "cv", "predictor": "cv", "method": "admm", "zstep": "sqp", "solver": "admm",
