@@ -75,9 +75,18 @@ class Stopped(BaseException):
         self.signum = signum
 
 
+_STOPPED = []  # the signal that stopped this process: a library that catches Stopped may raise its own error instead
+
+
 def _stop(signum, frame):
     signal.signal(signum, signal.SIG_IGN)  # a second signal must not interrupt the clean-up this one starts
+    _STOPPED.append(signum)
     raise Stopped(signum)
+
+
+def stop_signal() -> int | None:
+    """The signal that stopped this process, or None while none has."""
+    return _STOPPED[0] if _STOPPED else None
 
 
 def quiet() -> bool:

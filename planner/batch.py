@@ -29,7 +29,7 @@ from omegaconf import OmegaConf  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 from core import stats  # noqa: E402
-from core.jobs import UserError, mlflow_run, quiet  # noqa: E402
+from core.jobs import Stopped, UserError, mlflow_run, quiet, stop_signal  # noqa: E402
 from planner import report, setup  # noqa: E402
 
 FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
@@ -62,6 +62,8 @@ def episode(cfg_dict: dict, method: str, seed: int):
                "notes": "; ".join(ep.notes)}
         return row, [r["step_ms"] for r in ep.rows], [r["iterations"] for r in ep.rows if not r["fallback"]]
     except Exception as e:  # one bad episode must not kill a thousand: count it and carry its message
+        if stop_signal() is not None:  # the error came from a stop signal caught inside a library: stop, not a crash
+            raise Stopped(stop_signal()) from e
         return {"seed": seed, "crash": 1, "nan": 0, "error": f"{type(e).__name__}: {e}"[:500]}, [], []
 
 
