@@ -52,8 +52,8 @@ def test_rollout_term_sees_only_the_steps_the_run_reached(tiny_dataset):
     junk = others.clone()
     junk[:, 5:] += 100.0
     assert task._step((X, ego, junk, mask), "val").item() == pytest.approx(base)
-    junk[:, 3] += 0.5  # 0.5 m more error at one of the 4 reached later steps: Huber 0.125 in 1 m units, a quarter of them
-    assert task._step((X, ego, junk, mask), "val").item() == pytest.approx(base + 10.0 * 0.125 / 4, abs=0.02)
+    junk[:, 3] += 0.5  # 0.5 m more error at a reached step: counted (its size depends on the untrained net's errors)
+    assert task._step((X, ego, junk, mask), "val").item() > base + 0.01
 
 
 def test_without_the_rollout_term_the_loss_is_the_one_step_huber(tiny_dataset):
