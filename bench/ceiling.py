@@ -36,6 +36,11 @@ from planner.setup import build
 log = logging.getLogger(__name__)
 
 
+def stop_speed(x, x_ref):
+    """The highest speed (m/s) from which the ego at x (m) still stops 2 m before its lane ends at x_ref, at 2.5 m/s^2."""
+    return float(np.sqrt(5.0 * max(0.0, x_ref - 2.0 - x)))
+
+
 @dataclass(frozen=True)
 class GapPolicy:
     """Aim at a target-lane gap, lean in to ask for room, enter when both clearances allow; SI units."""
@@ -78,8 +83,7 @@ class GapPolicy:
                     else self.follow.acceleration(ego[3])), self.y_ref
         else:
             middle = 0.5 * (x_front + x_back)
-            v_des = min(v_gap + self.k_x * (middle - ego[0]), np.sqrt(5.0 * max(0.0, self.x_ref - 2.0 - ego[0])))
-            a = self.k_v * (v_des - ego[3])  # the square root: stop before the lane ends at 2.5 m/s^2
+            a = self.k_v * (min(v_gap + self.k_x * (middle - ego[0]), stop_speed(ego[0], self.x_ref)) - ego[3])
             if min(room_front, room_back) >= self.clearance:
                 y = self.y_ref
             else:
@@ -126,7 +130,7 @@ class CutInPolicy:
         else:
             y = 0.0
             v_des = (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv
-            a = self.k_v * (min(v_des, np.sqrt(5.0 * max(0.0, self.x_ref - 2.0 - ego[0]))) - ego[3])
+            a = self.k_v * (min(v_des, stop_speed(ego[0], self.x_ref)) - ego[3])
         return np.array([steer_to(ego, y, self.params, k_y=self.k_y), float(np.clip(a, *self.a_bounds))])
 
 
@@ -193,7 +197,7 @@ def held_in_lane(world: World, scenario, steps) -> float:
     states = [w.states()]
     for _ in range(steps):
         z = states[-1][0]
-        a = np.clip(np.sqrt(5.0 * max(0.0, scenario.x_ref - 2.0 - z[0])) - z[3], -4.0, 1.0)
+        a = np.clip(stop_speed(z[0], scenario.x_ref) - z[3], -4.0, 1.0)
         w.step(np.array([steer_to(z, scenario.road.centre(0), scenario.params), a]))
         states.append(w.states())
     return outcomes.b_imposed_max(np.array(states), scenario.params.dt)
