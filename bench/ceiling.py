@@ -1,11 +1,13 @@
 """The clairvoyant ceiling: per world, the fastest courteous merge that a search over ego strategies finds on copies of
 the true world (true hidden decisions), and the same search with every driver made stubborn (`never_yield`).
 
-What it searches: direct cut-ins (CutInPolicy: keep the lane at the stream's speed plus an offset, turn in at a given
-step, as a planner without a gap model does), then a family of gap-targeting feedback policies (GapPolicy). Each picks one gap of the target lane (the
-gap beside the ego or up to `gaps` gaps ahead or behind), tracks the gap's middle with a speed loop, leans into the
-target lane to one of several depths once near the middle, to ask the gap's follower to yield, and enters once both
-bumper clearances reach a threshold; in the target lane it follows its leader by IDM. Every policy is rolled out in a
+What it searches: direct cut-ins (CutInPolicy: wait in the lane or leaning towards the target lane at the stream's
+speed plus an offset, turn in at a given step, as a planner without a gap model does); gap acceptance (AcceptPolicy:
+wait, down to a standstill, leaning or not, and turn in once the gap beside leaves a clearance or its back car has
+stopped for the ego); and gap-targeting feedback policies (GapPolicy): each picks one gap of the target lane (the gap
+beside the ego or up to `gaps` gaps ahead or behind), tracks the gap's middle with a speed loop, leans into the target
+lane to one of several depths once near the middle, to ask the gap's follower to yield, and enters once both bumper
+clearances reach a threshold. In the target lane every policy follows its leader by IDM; none ever reverses. Every policy is rolled out in a
 copy of the world until it has merged and kept `settle` more steps without anyone braking harder than b_safe, or fails
 (a collision, braking above b_safe, the lane's end, max_steps); a rollout that can no longer beat the best merge found so
 far stops early. Each copy drives its own drivers: the world never follows a plan. A diagnostic: it knows what no
@@ -39,6 +41,13 @@ log = logging.getLogger(__name__)
 def stop_speed(x, x_ref):
     """The highest speed (m/s) from which the ego at x (m) still stops 2 m before its lane ends at x_ref, at 2.5 m/s^2."""
     return float(np.sqrt(5.0 * max(0.0, x_ref - 2.0 - x)))
+
+
+def control(ego, y, a, policy) -> np.ndarray:
+    """[delta (rad), a (m/s^2)] that steers the ego towards lateral position y and accelerates at a within the policy's
+    bounds, braking no harder than stops it within the step: the ego never reverses."""
+    a = float(np.clip(a, max(policy.a_bounds[0], -ego[3] / policy.params.dt), policy.a_bounds[1]))
+    return np.array([steer_to(ego, y, policy.params, k_y=policy.k_y), a])
 
 
 @dataclass(frozen=True)
@@ -88,18 +97,20 @@ class GapPolicy:
                 y = self.y_ref
             else:
                 y = self.y_lean if abs(middle - ego[0]) <= self.align else 0.0
-        return np.array([steer_to(ego, y, self.params, k_y=self.k_y), float(np.clip(a, *self.a_bounds))])
+        return control(ego, y, a, self)
 
 
 @dataclass(frozen=True)
 class CutInPolicy:
-    """Keep the lane at the nearby stream's speed plus dv until step `enter`, then steer straight into the target lane
-    and follow its leader by IDM: the direct cut-in that a planner without a gap model makes; SI units."""
+    """Hold y_wait (the lane centre, or leaning towards the target lane to ask for room) at the nearby stream's speed
+    plus dv until step `enter`, then steer straight into the target lane and follow its leader by IDM: the direct
+    cut-in that a planner without a gap model makes, and the nudge-then-cut-in of one that leans first; SI units."""
 
     y_ref: float  # target lane centre (m)
     x_ref: float  # the ego's lane ends here (m)
     enter: int  # the step at which the ego turns in
     dv: float  # speed relative to the nearby target-lane cars while waiting (m/s)
+    y_wait: float  # lateral position held until then (m)
     car_length: float  # m
     params: BicycleParams
     k_v: float = 1.5  # speed loop gain (1/s)
@@ -110,7 +121,7 @@ class CutInPolicy:
     @property
     def name(self):
         """How the search reports this strategy."""
-        return f"cut in at step {self.enter}, stream speed {self.dv:+.1f} m/s"
+        return f"cut in at step {self.enter}, stream speed {self.dv:+.1f} m/s, waiting at y = {self.y_wait} m"
 
     def pick(self, z):
         """No gap chosen in advance: the cut-in takes whatever is beside the ego when it turns."""
@@ -128,10 +139,60 @@ class CutInPolicy:
             a = self.follow.acceleration(ego[3]) if leader is None else \
                 self.follow.acceleration(ego[3], z[leader, 0] - ego[0] - self.car_length, z[leader, 3])
         else:
-            y = 0.0
+            y = self.y_wait
             v_des = (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv
             a = self.k_v * (min(v_des, stop_speed(ego[0], self.x_ref)) - ego[3])
-        return np.array([steer_to(ego, y, self.params, k_y=self.k_y), float(np.clip(a, *self.a_bounds))])
+        return control(ego, y, a, self)
+
+
+@dataclass(frozen=True)
+class AcceptPolicy:
+    """Hold y_wait at the nearby stream's speed plus dv (never below 0: a large negative dv waits at a standstill) and
+    turn in as soon as the gap beside the ego leaves `clearance` to its front car and to its back car, or its back car
+    has stopped for it; once its centre is over the lane line it stays committed and follows its leader by IDM: gap
+    acceptance, as a driver waiting at a lane's end does; SI units."""
+
+    y_ref: float  # target lane centre (m)
+    x_ref: float  # the ego's lane ends here (m)
+    y_wait: float  # lateral position held while waiting (m)
+    dv: float  # speed relative to the nearby target-lane cars while waiting (m/s)
+    clearance: float  # bumper clearance to the gap's front and back cars needed to turn in (m)
+    car_length: float  # m
+    params: BicycleParams
+    v_stopped: float = 0.5  # a back car this slow has stopped for the ego (m/s)
+    k_v: float = 1.5  # speed loop gain (1/s)
+    k_y: float = 2.0  # lateral gain of the steering law (1/s)
+    a_bounds: tuple = (-4.0, 3.0)  # the ego's acceleration limits (m/s^2): the planner's mpc.a_box
+    follow: IDMDriver = field(default_factory=lambda: IDMDriver(T=0.6, s0=1.0, a_max=3.0, b=3.0))
+
+    @property
+    def name(self):
+        """How the search reports this strategy."""
+        return f"accept a gap of {self.clearance} m, stream speed {self.dv:+.1f} m/s, waiting at y = {self.y_wait} m"
+
+    def pick(self, z):
+        """No gap chosen in advance: the first one that opens beside the ego."""
+        return None
+
+    def __call__(self, z, target, k):
+        """Control [delta (rad), a (m/s^2)] at step k in states z (M, 4)."""
+        ego = z[0]
+        lane = np.abs(z[1:, 1] - self.y_ref) < 2.0
+        ahead, behind = (np.flatnonzero(lane & side) + 1 for side in (z[1:, 0] > ego[0], z[1:, 0] <= ego[0]))
+        leader = ahead[np.argmin(z[ahead, 0])] if len(ahead) else None
+        room_front = z[leader, 0] - ego[0] - self.car_length if leader is not None else np.inf
+        room_back = ego[0] - z[behind, 0].max() - self.car_length if len(behind) else np.inf
+        lag_gone = room_back >= self.clearance or z[behind[np.argmax(z[behind, 0])], 3] <= self.v_stopped
+        if abs(ego[1] - self.y_ref) < 2.0 or (room_front >= self.clearance and lag_gone):
+            y = self.y_ref
+            a = self.follow.acceleration(ego[3]) if leader is None else \
+                self.follow.acceleration(ego[3], room_front, z[leader, 3])
+        else:
+            y = self.y_wait
+            near = lane & (np.abs(z[1:, 0] - ego[0]) < 15.0)
+            v_des = max(0.0, (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv)
+            a = self.k_v * (min(v_des, stop_speed(ego[0], self.x_ref)) - ego[3])
+        return control(ego, y, a, self)
 
 
 @dataclass(frozen=True)
@@ -144,7 +205,7 @@ class Outcome:
     policy: str
 
 
-def rollout(world: World, policy, y_ref, x_ref, merge_tol, b_safe, max_steps, settle, best=None) -> Outcome:
+def rollout(world: World, policy, scenario, max_steps, settle, best=None) -> Outcome:
     """Drive a copy of `world` with `policy`; stops at failure, after `settle` steps past the merge, or once it cannot
     merge before step `best`."""
     w = world.copy()
@@ -157,9 +218,9 @@ def rollout(world: World, policy, y_ref, x_ref, merge_tol, b_safe, max_steps, se
         z = w.states()
         states.append(z)
         b = outcomes.b_imposed_max(states[-2:], w.params.dt)
-        if any(0 in pair for pair in hits) or b > b_safe or (t_merge is None and (z[0, 0] >= x_ref or k > limit)):
+        if any(0 in pair for pair in hits) or b > scenario.b_safe or (t_merge is None and (z[0, 0] >= scenario.x_ref or k > limit)):
             return Outcome(False, max_steps, outcomes.b_imposed_max(states, w.params.dt), name)
-        if t_merge is None and abs(z[0, 1] - y_ref) <= merge_tol:
+        if t_merge is None and abs(z[0, 1] - scenario.y_ref) <= scenario.merge_tol:
             t_merge = k
         if t_merge is not None and k >= t_merge + settle:
             break
@@ -168,21 +229,24 @@ def rollout(world: World, policy, y_ref, x_ref, merge_tol, b_safe, max_steps, se
 
 
 def policies(scenario, search) -> list:
-    """The searched strategies: direct cut-ins at every entry step and speed offset, then every gap within search.gaps
-    of the ego's with every lean depth and clearance."""
+    """The searched strategies: direct cut-ins at every waiting position, entry step and speed offset; gap acceptance
+    at every waiting position, speed offset and clearance; every gap within search.gaps of the ego's with every lean
+    depth and clearance."""
     gaps = range(-search.gaps, search.gaps + 1)
-    cut_ins = [CutInPolicy(scenario.y_ref, scenario.x_ref, e, dv, scenario.road.car_length, scenario.params)
-               for e, dv in itertools.product(search.enter, search.dv)]
-    return cut_ins + [GapPolicy(scenario.y_ref, scenario.x_ref, g, y, c, scenario.road.car_length, scenario.params)
-                      for g, y, c in itertools.product(gaps, search.y_lean, search.clearance)]
+    length, params = scenario.road.car_length, scenario.params
+    cut_ins = [CutInPolicy(scenario.y_ref, scenario.x_ref, e, dv, y, length, params)
+               for y, e, dv in itertools.product(search.y_wait, search.enter, search.dv)]
+    accepts = [AcceptPolicy(scenario.y_ref, scenario.x_ref, y, dv, c, length, params)
+               for y, dv, c in itertools.product(search.y_wait, search.accept_dv, search.clearance)]
+    return cut_ins + accepts + [GapPolicy(scenario.y_ref, scenario.x_ref, g, y, c, length, params)
+                                for g, y, c in itertools.product(gaps, search.y_lean, search.clearance)]
 
 
 def search_world(world: World, scenario, cfg) -> Outcome:
     """The fastest courteous merge over policies() in copies of `world` (or the failure with the least imposed braking)."""
     best = None
     for p in policies(scenario, cfg.search):  # cut-ins first: quick merges bound the rest early
-        o = rollout(world, p, scenario.y_ref, scenario.x_ref, cfg.merge_tol, scenario.b_safe, cfg.max_steps, cfg.search.settle,
-                    best.t_merge if best is not None and best.courteous else None)
+        o = rollout(world, p, scenario, cfg.max_steps, cfg.search.settle, best.t_merge if best is not None and best.courteous else None)
         if o.courteous and (best is None or not best.courteous or o.t_merge < best.t_merge):
             best = o
         elif best is None or (not best.courteous and not o.courteous and o.b_imposed < best.b_imposed):

@@ -240,7 +240,7 @@ PAPER = {  # conf/paper/table1.yaml, shared by distill, surrogate and planner
 }
 
 SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every scenario shares, the dense stream's promise
-    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.x_ref": Real(), "scenario.followers": Int(1, optional=True),
+    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.merge_tol": POS, "scenario.x_ref": Real(), "scenario.followers": Int(1, optional=True),
     "scenario.min_behind_s": Real(0, optional=True),
 }
 
@@ -301,7 +301,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     **PAPER, **SCENARIO, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
     "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
-    "T_obs": Int(2, 21), "n_slots": Int(1), "merge_tol": POS, "plots": Bool(), "tolerate_crashes": Bool(),
+    "T_obs": Int(2, 21), "n_slots": Int(1), "plots": Bool(), "tolerate_crashes": Bool(),
     "mpc.T_p": Int(1), "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
     "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
     "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
@@ -356,9 +356,10 @@ BENCH = {
 
 CEILING = {
     **SCENARIO, "world": OneOf(("reactive", "predictor")), "seed": SEED, "episodes": Int(1), "n_jobs": N_JOBS,
-    "max_steps": Int(1), "merge_tol": POS, "out_dir": Text(nullable=True), "search.gaps": Int(0),
+    "max_steps": Int(1), "out_dir": Text(nullable=True), "search.gaps": Int(0),
     "search.y_lean": ListOf(POS, at_least=1), "search.clearance": ListOf(NONNEG, at_least=1), "search.settle": Int(0),
     "search.enter": ListOf(Int(0)), "search.dv": ListOf(Real()),
+    "search.y_wait": ListOf(Real(), at_least=1), "search.accept_dv": ListOf(Real()),
 }
 
 SCHEMAS = {"make_dataset": MAKE_DATASET, "distill": DISTILL, "surrogate": SURROGATE, "planner": PLANNER, "results": RESULTS,

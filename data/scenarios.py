@@ -27,6 +27,7 @@ class Scenario:
     params: bicycle.BicycleParams
     b_max: float  # the hardest any other car can brake (m/s^2)
     b_safe: float  # a merge is courteous when nobody brakes harder than this (m/s^2)
+    merge_tol: float  # merged once the ego's centre is this close to the target lane's centre (m)
 
     def __post_init__(self):
         if self.b_safe > self.b_max:

@@ -55,7 +55,7 @@ def episode(cfg_dict: dict, method: str, seed: int):
         cfg = OmegaConf.create(cfg_dict)
         scenario, source, s = worker_setup(cfg)
         ep = setup.drive(cfg, scenario, source, s, method, seed=seed)
-        m = report.metrics(ep, scenario, cfg.merge_tol)
+        m = report.metrics(ep, scenario)
         finite = np.isfinite(ep.states).all() and np.isfinite(ep.controls).all() and \
             np.isfinite([m[k] for k in ("t_merge", "C_max", "d_min_m")]).all()
         row = {"seed": seed, **m, "crash": 0, "nan": int(not finite), "error": "",

@@ -50,7 +50,7 @@ def run(cfg: DictConfig) -> dict:
         if cfg.plots and len(episodes) > 1 else []
     results = {}
     for m, ep in episodes.items():
-        results[m] = report.metrics(ep, scenario, cfg.merge_tol)
+        results[m] = report.metrics(ep, scenario)
         csv_path = out_dir / f"steps_{m}.csv"
         report.write_csv(ep, csv_path)
         with mlflow_run("planner", cfg, run_name=f"{m}-{source.name}-{scenario.name}", method=m,

@@ -17,11 +17,11 @@ from data.world import corners  # noqa: E402
 COLORS = {"admm": "tab:red", "nnmpc": "tab:purple"}
 
 
-def metrics(ep, scenario, merge_tol):
+def metrics(ep, scenario):
     """Table II, courtesy and timing metrics of one episode in `scenario`: merged (0/1), t_merge (steps; steps driven if
     never), C_max, d_min_m, collision, b_imposed_max (m/s^2), courteous (0/1), ttc_min (s), ..."""
     rows = ep.rows
-    in_lane = [r["step"] for r in rows if abs(r["y"] - scenario.y_ref) <= merge_tol and r["x"] < scenario.x_ref]
+    in_lane = [r["step"] for r in rows if abs(r["y"] - scenario.y_ref) <= scenario.merge_tol and r["x"] < scenario.x_ref]
     b_imposed = outcomes.b_imposed_max(ep.states, scenario.params.dt)
     ms = np.array([r["step_ms"] for r in rows]) if rows else np.array([np.nan])
     iters = [r["iterations"] for r in rows if not r["fallback"]]

@@ -95,7 +95,7 @@ def test_a_stream_too_short_for_its_promise_is_one_clear_line(tmp_path, capsys):
 
 def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
     cfg = compose_cfg("ceiling", ["scenario=dense", "search.gaps=1", "search.y_lean=[1.8]", "search.clearance=[1.0]",
-                                  "search.enter=[0, 10]", "search.dv=[0.0]"])
+                                  "search.enter=[0, 10]", "search.dv=[0.0]", "search.y_wait=[0.0]", "search.accept_dv=[0.0]"])
     sc = scenario("dense")
     # one wide gap beside the ego: entering needs nobody to yield
     open_lane = lane_world([[9.2, 0.0, 0.0, 5.0], [30.0, 4.0, 0.0, 5.0], [2.0, 4.0, 0.0, 5.0], [-6.0, 4.0, 0.0, 5.0]],
@@ -107,6 +107,20 @@ def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
                         [False] * 21, v0=5.0, T=0.1, s0=0.4)
     walled = instantiate(compose_cfg("ceiling", ["scenario=dense", "scenario.x_ref=20"]).scenario, _convert_="all")
     assert not ceiling.search_world(closed, walled, cfg).courteous
+
+
+def test_gap_acceptance_turns_in_ahead_of_a_car_stopped_for_it_and_never_reverses():
+    sc = scenario("dense")
+    policy = ceiling.AcceptPolicy(sc.y_ref, sc.x_ref, 1.8, -10.0, 0.5, sc.road.car_length, sc.params)
+    ego = [20.0, 1.8, 0.3, 0.0]  # waiting at a standstill, leaning in
+    front = [28.0, 4.0, 0.0, 5.0]  # room ahead
+    for v_back, turns in [(0.0, True), (5.0, False)]:  # the car beside, its front past the ego's rear
+        delta, a = policy(np.array([ego, front, [17.0, 4.0, 0.0, v_back]]), None, 0)
+        assert (a > 0.0) == turns and (delta > 0.0) == turns
+    # IDM asks for full braking behind a stopped car 0.5 m ahead: at 0.1 m/s the ego stops within the step, not reverses
+    stopped_ahead = [20.0 + sc.road.car_length + 0.5, 4.0, 0.0, 0.0]
+    _, a = policy(np.array([[20.0, 1.8, 0.3, 0.1], stopped_ahead, [17.0, 4.0, 0.0, 0.0]]), None, 0)
+    assert a == pytest.approx(-0.1 / sc.params.dt)
 
 
 def test_ceiling_refuses_the_predictor_world(capsys):

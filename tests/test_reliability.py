@@ -212,7 +212,7 @@ def test_compare_splits_runs_that_differ_in_any_setting_and_pools_the_rest(store
     ok = {"merged": 1, "collision": 0, "step_ms_median": 5.0, "step_ms_p95": 9.0, "t_merge": 11, "C_max": 60, "d_min_m": 4.0}
     mlflow.set_experiment("planner")
     for change in [{}, {"n_jobs": "2", "plots": "False", "out_dir": "/elsewhere"}, {"solver": "ipopt"}, {"T_obs": "2"},
-                   {"mpc.weights.lambda_v": "7.0"}, {"merge_tol": "100"}, {"models_dir": "other"},
+                   {"mpc.weights.lambda_v": "7.0"}, {"scenario.merge_tol": "100"}, {"models_dir": "other"},
                    {"method.nnmpc.lengths": "[8.0]"}]:  # the last: a method=both run's config of the method it was not
         with mlflow.start_run():
             params = list((base | change).items())
@@ -221,7 +221,7 @@ def test_compare_splits_runs_that_differ_in_any_setting_and_pools_the_rest(store
             mlflow.log_metrics(ok)
     df = compare(compose_cfg("compare", [f"out_dir={store}"]))
     assert len(df) == 6 and sorted(df["n_runs"]) == [1, 1, 1, 1, 1, 3]
-    assert set(df.attrs["params"]) >= {"solver", "T_obs", "mpc.weights.lambda_v", "merge_tol", "models_dir"}
+    assert set(df.attrs["params"]) >= {"solver", "T_obs", "mpc.weights.lambda_v", "scenario.merge_tol", "models_dir"}
     assert "n_jobs" not in df and "method.nnmpc.lengths" not in df
     assert sorted(df["solver"]) == ["admm"] * 5 + ["ipopt"] and sorted(df["T_obs"]) == ["2"] + ["8"] * 5
 
