@@ -30,14 +30,12 @@ from pathlib import Path
 
 import hydra
 import numpy as np
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
 
 from bench import ceiling
 from bench.branches import heldout_seeds
 from core import stats, validate
-from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, writable
+from core.jobs import CONF_DIR, UserError, console, guarded, job_config, mlflow_run, writable
 from planner.batch import progress
 from planner.gradients import available, reads_models
 
@@ -46,14 +44,6 @@ TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources t
 METHODS = ("admm", "nnmpc")
 MODELS = ("cv", "teacher", "student")  # predictors of the accuracy table; cv from the cv_* metrics of the teacher's runs
 SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling"}  # the ceiling's two searches and their row names
-
-
-def job_config(name: str, overrides) -> DictConfig:
-    """The config of job `name` (conf/<name>.yaml) with Hydra overrides, composed as its console script would."""
-    if GlobalHydra.instance().is_initialized():
-        return compose(name, overrides=list(overrides))
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(name, overrides=list(overrides))
 
 
 class Plan:

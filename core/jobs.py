@@ -9,10 +9,37 @@ import tempfile
 import threading
 from pathlib import Path
 
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")  # Hydra configs live beside the packages (editable install)
+
+
+def job_config(name: str, overrides=()) -> DictConfig:
+    """The config of job `name` (conf/<name>.yaml) with Hydra overrides, composed as its console script would (inside a
+    running Hydra job, by its own search path)."""
+    if GlobalHydra.instance().is_initialized():
+        return compose(name, overrides=list(overrides))
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(name, overrides=list(overrides))
+
+
+def build(node, **kwargs):
+    """instantiate(node, **kwargs) with plain containers; a UserError raised while building (a missing model) is
+    re-raised as itself, not wrapped in Hydra's InstantiationException."""
+    try:
+        return instantiate(node, _convert_="all", **kwargs)
+    except InstantiationException as e:
+        cause = e.__cause__
+        while cause is not None and not isinstance(cause, UserError):
+            cause = cause.__cause__
+        if cause is None:
+            raise
+        raise cause from None
 
 
 def options(group: str) -> list[str]:

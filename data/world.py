@@ -70,6 +70,24 @@ def overlap(z1, z2, road: Road) -> bool:
     return True
 
 
+def collided(z, road: Road) -> list:
+    """Index pairs (i, j), i < j, whose bodies overlap in states z (M, 4); far pairs are skipped before the exact test."""
+    d = np.hypot(*(z[:, None, :2] - z[None, :, :2]).transpose(2, 0, 1))
+    near = zip(*np.nonzero(np.triu(d <= np.hypot(road.car_length, road.car_width), 1)))
+    return [(int(i), int(j)) for i, j in near if overlap(z[i], z[j], road)]
+
+
+def remembered_xy(seen, steps, dt) -> np.ndarray:
+    """xy (steps, M, 2) of the last `steps` of the states `seen` (newest last), of which at most MEMORY + 1 are kept;
+    before the first, every car is driven backwards at its initial heading and speed (constant velocity)."""
+    if steps > MEMORY + 1:
+        raise ValueError(f"a world remembers {MEMORY + 1} steps; {steps} asked")
+    known = np.array([z[:, :2] for z in seen[-steps:]])
+    if len(known) >= steps:
+        return known
+    return np.concatenate([backfill(seen[0], steps - len(known) + 1, dt)[:-1], known])
+
+
 @dataclass
 class World:
     """Mutable traffic state: z (SLOTS, 4) bicycle states, vehicle 0 the ego; drivers[j-1] drives vehicle j >= 1."""
@@ -258,18 +276,11 @@ class World:
         self.z = z_next
         self.t += self.params.dt
         self.seen = self.seen[-MEMORY:] + [z_next.copy()]
-        d = np.hypot(*(self.z[:, None, :2] - self.z[None, :, :2]).transpose(2, 0, 1))
-        near = zip(*np.nonzero(np.triu(d <= np.hypot(self.road.car_length, self.road.car_width), 1)))
-        hits = [(int(i), int(j)) for i, j in near if overlap(self.z[i], self.z[j], self.road)]
+        hits = collided(self.z, self.road)
         self.collisions += [(self.t, i, j) for i, j in hits]
         return hits
 
     def past_xy(self, steps):
         """xy (steps, M, 2) of the last `steps` steps, newest last (m); before t = 0 every car is driven backwards at its
         initial heading and speed (constant velocity), as nothing was observed then."""
-        if steps > MEMORY + 1:
-            raise ValueError(f"a world remembers {MEMORY + 1} steps; {steps} asked")
-        known = np.array([z[:, :2] for z in self.seen[-steps:]])
-        if len(known) >= steps:
-            return known
-        return np.concatenate([backfill(self.seen[0], steps - len(known) + 1, self.params.dt)[:-1], known])
+        return remembered_xy(self.seen, steps, self.params.dt)

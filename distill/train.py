@@ -11,14 +11,12 @@ import lightning as L
 import mlflow
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, mlflow_run, quiet, staged, tracking_uri, writable
+from core.jobs import CONF_DIR, UserError, job_config, mlflow_run, quiet, staged, tracking_uri, writable
 from data import dataset
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
@@ -71,8 +69,7 @@ def scenario_configs(names):
     unknown = [n for n in names if n not in options]
     if unknown:
         raise UserError(f"model.certificate.scenarios: unknown scenario {unknown[0]}; choose from {', '.join(options)}")
-    with nullcontext() if GlobalHydra.instance().is_initialized() else initialize_config_dir(CONF_DIR, version_base="1.3"):
-        return {n: OmegaConf.to_container(compose(f"scenario/{n}").scenario, resolve=True) for n in names}
+    return {n: OmegaConf.to_container(job_config(f"scenario/{n}").scenario, resolve=True) for n in names}
 
 
 def certify(cfg_cert, predictor, windows, rng):

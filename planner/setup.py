@@ -2,40 +2,18 @@
 closed-loop episode of a method; used by the `planner` command, its batch workers, the benchmarks and the tests."""
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
-from hydra.errors import InstantiationException
-from hydra.utils import get_class, get_object, instantiate
+from hydra.utils import get_class, get_object
 from omegaconf import DictConfig
 
-from core.jobs import CONF_DIR, UserError
+from core.jobs import UserError, build, job_config
 from distill import certificate
 from planner import closed_loop, mpc
 from planner.gradients import WorldModel
 
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
-    """The `planner` config composed for `scenario` with Hydra overrides, as the console script would compose it (inside a
-    running Hydra job, by its own search path)."""
-    overrides = [f"scenario={scenario}", *overrides]
-    if GlobalHydra.instance().is_initialized():
-        return compose("planner", overrides=overrides)
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose("planner", overrides=overrides)
-
-
-def build(node, **kwargs):
-    """instantiate(node, **kwargs) with plain containers; a UserError raised while building (a missing model) is
-    re-raised as itself, not wrapped in Hydra's InstantiationException."""
-    try:
-        return instantiate(node, _convert_="all", **kwargs)
-    except InstantiationException as e:
-        cause = e.__cause__
-        while cause is not None and not isinstance(cause, UserError):
-            cause = cause.__cause__
-        if cause is None:
-            raise
-        raise cause from None
+    """The `planner` config composed for `scenario` with Hydra overrides, as the console script would compose it."""
+    return job_config("planner", [f"scenario={scenario}", *overrides])
 
 
 def rho(cfg: DictConfig, scenario) -> float:

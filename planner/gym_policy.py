@@ -1,0 +1,78 @@
+"""The planner as a gymnasium policy for highway-env's dense merge (data.highway, `admm-nnmpc/DenseMerge-v0`).
+
+    env = gymnasium.make("admm-nnmpc/DenseMerge-v0")
+    policy = MergePolicy(["gradients=student", "method=admm"])
+    obs, info = env.reset(seed=2000000)
+    policy.reset()
+    while True:
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        if terminated or truncated:
+            break
+    info["courteous"]
+
+It sees only the observations (absolute states with ids) and keeps each car's own past, as data.perception does for our
+world: the n_slots cars nearest the ego, in id order, each with its history (constant velocity before it was first
+seen). The frame and action mapping is data.highway's (to_ours, to_action), nowhere else.
+"""
+import numpy as np
+
+from core.jobs import UserError, build
+from data.highway import DenseMergeEnv, to_action, to_ours
+from data.perception import slot_ids
+from data.world import backfill
+from planner.mpc import Observation
+from planner.setup import planner_config, setup
+
+
+class MergePolicy:
+    """reset(), then policy(observation) -> the env's action; `overrides` are the `planner` command's (scenario=highway
+    unless given), `action` the env's action config (its ranges; the env's default if None)."""
+
+    def __init__(self, overrides=(), action=None):
+        overrides = list(overrides)
+        scenario = next((o.split("=", 1)[1] for o in overrides if o.startswith("scenario=")), "highway")
+        cfg = planner_config(scenario, [o for o in overrides if not o.startswith("scenario=")])
+        methods = list(cfg.method)
+        if len(methods) != 1:
+            raise UserError(f"method={'+'.join(methods)}: a policy drives one method; choose method=admm or method=nnmpc")
+        self.scenario, self.source, self.settings = setup(cfg)
+        if self.source.needs_world:
+            raise UserError("gradients=oracle reads the running world; a gymnasium policy has only observations")
+        self.step = build(cfg.method[methods[0]])
+        self.T_obs, self.n_slots, self.dt = cfg.T_obs, cfg.n_slots, self.scenario.params.dt
+        action = action or DenseMergeEnv.default_config()["action"]
+        self.ranges = action["acceleration_range"], action["steering_range"]
+        self.pasts = None
+        self.last = None  # the last planning step's result (fallback reason, cost, iterations)
+
+    def reset(self):
+        """Forget the last episode: histories, the last control and the warm start."""
+        self.pasts, self.u_prev, self.warm = {}, np.zeros(2), None
+
+    def observe(self, observation) -> Observation:
+        """The planner's Observation from an env observation (rows [present, id, x, y, heading, speed])."""
+        if self.pasts is None:
+            raise UserError("MergePolicy: call reset() at the start of every episode, before the first observation")
+        rows = np.asarray(observation, float)
+        rows = rows[rows[:, 0] > 0.5]
+        ids, z = rows[:, 1].astype(int), to_ours(rows[:, 2:6])
+        if len(ids) == 0 or ids[0] != 0:
+            raise UserError("MergePolicy: the observation holds no ego row (id 0 first)")
+        for i, zi in zip(ids, z):
+            past = self.pasts.get(i)
+            self.pasts[i] = (list(backfill(zi[None], self.T_obs, self.dt)[:, 0]) if past is None else past + [zi[:2]])[-self.T_obs:]
+        if len(ids) - 1 < self.n_slots:  # fewer cars in view than slots: pad with cars far behind, never reached
+            far = np.array([[z[0, 0] - 200.0 - 10.0 * k, z[0, 1], 0.0, 0.0] for k in range(self.n_slots + 1 - len(ids))])
+            z = np.vstack([z, far])
+            pasts = [np.array(self.pasts[i]) for i in ids] + [np.repeat(f[None, :2], self.T_obs, 0) for f in far]
+        else:
+            pasts = [np.array(self.pasts[i]) for i in ids]
+        slots = slot_ids(z, self.n_slots)
+        history = np.stack([pasts[k] for k in slots], axis=1)
+        return Observation(z[0].copy(), self.u_prev.copy(), history)
+
+    def __call__(self, observation) -> np.ndarray:
+        """The env's action [acceleration, steering] in [-1, 1] for this observation."""
+        self.last = self.step(self.settings, self.observe(observation), self.source, self.warm)
+        self.u_prev, self.warm = np.nan_to_num(self.last.u), self.last.plan
+        return to_action(self.u_prev, *self.ranges)

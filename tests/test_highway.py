@@ -1,0 +1,130 @@
+"""highway-env as a second world: the frame and action mapping, determinism, the env's success flag, the planner through
+the World protocol and as a gymnasium policy, and the one-line errors."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("highway_env")
+import gymnasium  # noqa: E402
+
+from core.jobs import UserError, build, job_config  # noqa: E402
+from data import bicycle, highway  # noqa: E402
+from data.bicycle import BicycleParams  # noqa: E402
+from planner import report  # noqa: E402
+from planner.gym_policy import MergePolicy  # noqa: E402
+from planner.setup import drive, planner_config, setup  # noqa: E402
+
+
+def env(seed=2000000, **config):
+    """A reset DenseMergeEnv (unwrapped) of world `seed`."""
+    e = highway.DenseMergeEnv(config=config)
+    e.reset(seed=seed)
+    return e
+
+
+def test_same_seed_same_episode_and_another_seed_another_world():
+    runs = []
+    for seed in (5, 5, 6):
+        e = env(seed)
+        for k in range(8):
+            e.step(np.array([0.3, 0.1 * (-1) ** k], np.float32))
+        runs.append(e.states())
+    assert np.array_equal(runs[0], runs[1])
+    assert runs[0].shape != runs[2].shape or not np.allclose(runs[0], runs[2])
+
+
+def test_a_car_ahead_in_the_left_lane_lands_where_our_frame_says():
+    e = env()
+    ego, car = e.road.vehicles[0], e.road.vehicles[1]
+    car.position = ego.position + np.array([10.0, -4.0])  # highway-env: 10 m ahead, one lane to the left (y grows right)
+    car.heading = 0.1  # turning right in highway-env
+    z = e.states()
+    assert z[1, :2] - z[0, :2] == pytest.approx([10.0, 4.0])  # ours: y grows to the left
+    assert z[1, 2] == pytest.approx(-0.1)  # ours: anticlockwise
+    assert e.scenario().road.centre(1) == pytest.approx(z[0, 1] + 4.0)  # the ego starts on lane 0's centre
+
+
+def test_action_order_scaling_axles_dt_and_substeps_match_our_bicycle():
+    e = env()
+    a_range, s_range = e.config["action"]["acceleration_range"], e.config["action"]["steering_range"]
+    u = np.array([0.2, 1.5])  # steer left 0.2 rad, accelerate 1.5 m/s^2
+    action = highway.to_action(u, a_range, s_range)
+    assert action[0] == pytest.approx(2 * (1.5 - a_range[0]) / (a_range[1] - a_range[0]) - 1)  # acceleration first
+    assert action[1] < 0  # steering left is negative in highway-env
+    assert highway.from_action(action, a_range, s_range) == pytest.approx(u, abs=1e-6)
+    sc = e.scenario()
+    assert sc.road.car_length == highway.Vehicle.LENGTH and sc.params.l_f == sc.params.l_r == highway.Vehicle.LENGTH / 2
+    substeps = e.config["simulation_frequency"] // e.config["policy_frequency"]
+    assert sc.params.dt == pytest.approx(substeps / e.config["simulation_frequency"])
+    z = e.states()[0]
+    e.step(action)
+    fine = BicycleParams(sc.params.l_f, sc.params.l_r, sc.params.dt / substeps)
+    for _ in range(substeps):
+        z = bicycle.step(z, u, fine)
+    assert e.states()[0] == pytest.approx(z, abs=1e-6)
+    assert z[1] > 0  # and it went left
+
+
+def test_the_ego_stops_instead_of_reversing():
+    e = env()
+    for _ in range(10):
+        e.step(np.array([-1.0, 0.0], np.float32))
+    assert e.states()[0, 3] == 0.0
+
+
+def test_success_flag_on_hand_built_episodes():
+    e = env()
+    sc = e.scenario()
+    ego = e.vehicle
+    for v in e.road.vehicles[1:]:  # clear the target lane around the ego
+        v.position = v.position + np.array([100.0 if v.position[0] > ego.position[0] else -100.0, 0.0])
+    ego.position = np.array([ego.position[0], -sc.y_ref])  # put the ego on the target lane's centre
+    info = e.step(highway.to_action(np.zeros(2), e.config["action"]["acceleration_range"],
+                                    e.config["action"]["steering_range"]))[-1]
+    assert info["merged"] and not info["crashed"] and info["b_imposed_max"] <= sc.b_safe and info["courteous"]
+    # the same, with a follower put 1.5 m behind a stopped car: it brakes harder than b_safe (within b_max): not courteous
+    follower, leader = e.road.vehicles[-1], e.road.vehicles[-2]
+    leader.speed, follower.position = 0.0, leader.position - np.array([highway.Vehicle.LENGTH + 1.5, 0.0])
+    info = e.step(np.zeros(2, np.float32))[-1]
+    assert info["merged"] and sc.b_safe < info["b_imposed_max"] <= sc.b_max and not info["courteous"]
+
+
+def test_a_short_cv_episode_reports_what_the_env_state_implies():
+    cfg = planner_config("highway", ["gradients=cv", "max_steps=6"])
+    scenario, source, s = setup(cfg)
+    ep = drive(cfg, scenario, source, s, "admm", seed=2000003)
+    m = report.metrics(ep, scenario)
+    speeds = ep.states[:, 1:, 3]
+    assert m["b_imposed_max"] == pytest.approx(max(0.0, np.max(speeds[:-1] - speeds[1:]) / scenario.params.dt))
+    in_lane = np.abs(ep.states[1:, 0, 1] - scenario.y_ref) <= scenario.merge_tol
+    assert m["merged"] == float(in_lane.any()) and len(ep.rows) == 6
+
+
+def test_the_planner_drives_the_gymnasium_env_as_a_policy():
+    e = gymnasium.make(highway.ENV_ID)
+    policy = MergePolicy(["gradients=cv", "method=admm"])
+    obs, _ = e.reset(seed=2000001)
+    policy.reset()
+    for _ in range(3):
+        obs, _, terminated, truncated, info = e.step(policy(obs))
+    assert e.action_space.contains(policy(obs)) and set(info) >= {"merged", "courteous", "b_imposed_max", "crashed"}
+
+
+def test_bad_input_is_one_clear_line():
+    with pytest.raises(UserError, match="call reset"):
+        MergePolicy(["gradients=cv", "method=admm"])(np.zeros((24, 6)))
+    with pytest.raises(UserError, match="observation.type=Kinematics"):
+        env(observation={"type": "Kinematics"})
+    with pytest.raises(UserError, match="needs a dense scenario"):
+        env(scenario="two_lane")
+    world = build(job_config("planner", ["scenario=highway"]).scenario).make_world(0)
+    with pytest.raises(UserError, match="never yield"):
+        world.with_decisions(np.ones(len(world.states()), bool))
+
+
+def test_highway_env_missing_names_the_extra():
+    code = "import sys; sys.modules['highway_env'] = None\nimport data.highway"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode != 0 and "pip install -e '.[highway]'" in out.stderr.strip().splitlines()[-1]
