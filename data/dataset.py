@@ -6,7 +6,6 @@ Besides each episode's own run (branch 0), counterfactual branches (1, 2, ...) r
 random steps where the ego can interact (same drivers, same hidden decisions) and drive the ego on differently for
 T_p steps: interventional data showing how the others react to what the ego does.
 """
-import copy
 import hashlib
 import json
 import time
@@ -18,7 +17,7 @@ from joblib import Parallel, delayed
 
 from core.jobs import UserError, atomic_dir
 from data.perception import slot_ids
-from data.policies import sample_policy
+from data.policies import follow, sample_policy
 from data.scenarios import Scenario
 from data.world import steer_to
 
@@ -39,12 +38,12 @@ def rollout(scenario: Scenario, policy, seed: int, steps: int, snapshots=()):
     """Run one episode; returns states (steps+1, M, 4), yielding (steps+1, SLOTS), the world (ends early on a collision),
     and copies of the world after each step in `snapshots` that the episode reached."""
     world = scenario.make_world(seed)
-    states, yielding, copies = [world.z.copy()], [world.yielding.copy()], {}
+    states, yielding, copies = [world.states()], [world.yielding.copy()], {}
     for k in range(steps):
         if k in snapshots:
-            copies[k] = copy.deepcopy(world)
+            copies[k] = world.copy()
         hits = world.step(policy(world))
-        states.append(world.z.copy())
+        states.append(world.states())
         yielding.append(world.yielding.copy())
         if hits:
             break
@@ -60,14 +59,13 @@ class Intervention:
 
     def __call__(self, world):
         """Control [delta (rad), a (m/s^2)] for the ego now."""
-        z = world.z[0]
-        a_follow = world.idm_to(0, world.leader(0, world.road.lane_of(z[1])))  # never drive into a car ahead on purpose
-        return np.array([steer_to(z, self.y_target, world.params, k_y=0.8), float(np.clip(min(self.v_target - z[3], a_follow), -3.0, 2.0))])
+        z = world.states()[0]
+        return np.array([steer_to(z, self.y_target, world.params, k_y=0.8), float(np.clip(min(self.v_target - z[3], follow(world)), -3.0, 2.0))])
 
 
 def interventions(rng, world, y_ref, ranges):
     """The counterfactual egos of one branch point: push on towards y_ref, back off to the start lane, change speed."""
-    y, v = float(world.z[0, 1]), float(world.z[0, 3])
+    y, v = (float(q) for q in world.states()[0, [1, 3]])
     push = Intervention(float(rng.uniform(*ranges["y_push"])) * y_ref, v)
     back = Intervention(0.0, v)
     speed = Intervention(y, max(0.0, v + float(rng.choice([-1.0, 1.0]) * rng.uniform(*ranges["dv"]))))
@@ -77,18 +75,19 @@ def interventions(rng, world, y_ref, ranges):
 def can_interact(world, scenario, reach):
     """Whether what the ego does next can matter to the others: it is before x_ref, not yet in the target lane, and a
     target-lane car is within `reach` metres along the road (where random branch points would mostly be idle)."""
-    ego, lane = world.z[0], world.road.lane_of(scenario.y_ref)
-    near = (np.abs(world.z[1:, 0] - ego[0]) <= reach) & (world.road.lane_of(world.z[1:, 1]) == lane)
+    z, lane = world.states(), world.road.lane_of(scenario.y_ref)
+    ego = z[0]
+    near = (np.abs(z[1:, 0] - ego[0]) <= reach) & (world.road.lane_of(z[1:, 1]) == lane)
     return bool(ego[0] < scenario.x_ref and world.road.lane_of(ego[1]) != lane and near.any())
 
 
 def branch(world, ego, steps):
     """Drive a copy of `world` on for `steps` steps with the ego controller `ego`: states (steps+1, M, 4), yielding."""
-    world = copy.deepcopy(world)
-    states, yielding = [world.z.copy()], [world.yielding.copy()]
+    world = world.copy()
+    states, yielding = [world.states()], [world.yielding.copy()]
     for _ in range(steps):
         hits = world.step(ego(world))
-        states.append(world.z.copy())
+        states.append(world.states())
         yielding.append(world.yielding.copy())
         if hits:
             break
@@ -117,7 +116,7 @@ def episode_seeds(seed: int, episodes: int):
 def explore(scenario, policy_ranges, seed, steps, snapshots=()):
     """One seeded episode with a sampled exploratory ego: states, yielding flags, final world, world copies, the policy."""
     world0 = scenario.make_world(seed)
-    policy = sample_policy(np.random.default_rng([seed, 1]), scenario.y_ref, float(world0.z[1:, 3].mean()), policy_ranges)
+    policy = sample_policy(np.random.default_rng([seed, 1]), scenario.y_ref, float(world0.states()[1:, 3].mean()), policy_ranges)
     return (*rollout(scenario, policy, seed, steps, snapshots), policy)
 
 
@@ -140,7 +139,7 @@ def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs, n_slots):
     X, Y, last, flags, ids = (np.concatenate([p[k] for p in parts]) for k in range(5))
     branch_id = np.concatenate([np.full(len(p[0]), p[5]) for p in parts])
     stats = {"collided": bool(world.collisions), "attempts": policy.attempts, "any_yield": bool(yielding.any()),
-             "merged": bool(world.road.lane_of(world.z[0, 1]) == world.road.lane_of(scenario.y_ref)),
+             "merged": bool(world.road.lane_of(world.states()[0, 1]) == world.road.lane_of(scenario.y_ref)),
              "branches": len(parts) - 1}
     return X, Y, last, flags, ids, branch_id, stats
 

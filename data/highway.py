@@ -221,6 +221,11 @@ class HighwayWorld:
         self.seen = [env.states()]
 
     @property
+    def yielding(self) -> np.ndarray:
+        """Nobody yields in advance in highway-env (M,)."""
+        return np.zeros(len(self.seen[-1]), bool)
+
+    @property
     def t(self) -> float:
         """Time since the start (s)."""
         return float(self.env.time)
@@ -257,7 +262,7 @@ class HighwayWorld:
 
     def decisions(self) -> np.ndarray:
         """No hidden decisions: highway-env's drivers never yield in advance."""
-        return np.zeros(len(self.seen[-1]), bool)
+        return self.yielding
 
     def with_decisions(self, will_yield) -> "HighwayWorld":
         """A copy; only `nobody yields` is possible here."""

@@ -3,7 +3,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from data.world import World, steer_to
+from data.drivers import IDMDriver
+from data.protocol import World
+from data.world import steer_to
+
+
+def follow(world: World) -> float:
+    """IDM acceleration (m/s^2, a default driver's) of the ego behind the nearest car ahead in its lane now: exploratory
+    egos never drive into a car ahead on purpose."""
+    z = world.states()
+    lanes = world.road.lane_of(z[:, 1])
+    ahead = np.flatnonzero((lanes[1:] == lanes[0]) & (z[1:, 0] > z[0, 0])) + 1
+    if not len(ahead):
+        return IDMDriver().acceleration(z[0, 3])
+    j = ahead[np.argmin(z[ahead, 0])]
+    return IDMDriver().acceleration(z[0, 3], z[j, 0] - z[0, 0] - world.road.car_length, z[j, 3])
 
 
 @dataclass
@@ -33,10 +47,9 @@ class ProbePolicy:
 
     def gap(self, world: World):
         """(clearance ahead, clearance behind, middle x) of the ego's slot among target-lane cars (m)."""
-        lane = world.road.lane_of(self.y_ref)
-        lanes = world.road.lane_of(world.z[1:, 1])
-        xs = world.z[1:, 0][lanes == lane]
-        x = world.z[0, 0]
+        lane, z = world.road.lane_of(self.y_ref), world.states()
+        xs = z[1:, 0][world.road.lane_of(z[1:, 1]) == lane]
+        x = z[0, 0]
         ahead, behind = xs[xs > x], xs[xs <= x]
         front = ahead.min() if len(ahead) else x + 50.0
         back = behind.max() if len(behind) else x - 50.0
@@ -50,7 +63,7 @@ class ProbePolicy:
     def __call__(self, world: World):
         """Control [delta (rad), a (m/s^2)] for the ego now."""
         t = world.t
-        z = world.z[0]
+        z = world.states()[0]
         if self.phase == "cruise" and not self.keep_lane and t >= self.t_start:
             self.phase, self.phase_t, self._open_at_start = "probe", t, self.is_open(world)
         elif self.phase == "probe" and t - self.phase_t >= self.hold:
@@ -64,8 +77,7 @@ class ProbePolicy:
         v_des = self.v_target if t < self.v_change_t else self.v_target2
         if self.phase == "probe":
             v_des += self.align_gain * (self.gap(world)[2] - z[0])
-        a_follow = world.idm_to(0, world.leader(0, world.road.lane_of(z[1])))
-        a = float(np.clip(min(1.0 * (v_des - z[3]), a_follow), *self.a_bounds))
+        a = float(np.clip(min(1.0 * (v_des - z[3]), follow(world)), *self.a_bounds))
         return np.array([steer_to(z, y_target, world.params, k_y=0.8), a])
 
 

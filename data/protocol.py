@@ -10,7 +10,8 @@ class World(Protocol):
     """A traffic world one dt at a time: car 0 is the ego, cars keep their index (id) for the whole episode.
 
     Made from a seed by its scenario (`scenario.make_world(seed)`); `road` (lanes, widths, car size in m), `params`
-    (bicycle, dt in s), `t` (s) and `collisions` [(t, i, j)] are read-only attributes.
+    (bicycle, dt in s), `t` (s), `collisions` [(t, i, j)] and `yielding` (M,) bool (which drivers brake for the ego
+    now: dataset labels, never a planner's input) are read-only attributes.
     """
 
     def states(self) -> np.ndarray:
