@@ -30,6 +30,7 @@ from pathlib import Path
 
 import hydra
 import numpy as np
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from bench import ceiling
@@ -374,13 +375,21 @@ def fidelity_plot(inter: dict, speed: dict, path: Path):
     plt.close(fig)
 
 
+def command_line(p) -> str:
+    """The command that wrote the results: `results` with its overrides (the preset's name outside a Hydra job)."""
+    try:
+        return " ".join(["results", *HydraConfig.get().overrides.task])
+    except ValueError:
+        return f"results results_preset={p.name}"
+
+
 def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
     """Write dest/README-results.md and the figures from the jobs' outputs; returns the Markdown's path."""
     p = cfg.results_preset
     rng = np.random.default_rng(cfg.bootstrap.seed)
     seeds = list(p.training_seeds)
     head = [f"# Results (preset `{p.name}`)", "",
-            f"Written by `results results_preset={p.name}` (bench/results.py); do not edit by hand. Dataset `{p.dataset}`; "
+            f"Written by `{command_line(p)}` (bench/results.py); do not edit by hand. Dataset `{p.dataset}`; "
             f"training seeds {seeds}; held-out planner worlds from seed {cfg.planner_seed}. Brackets: 95% intervals "
             "(Wilson for rates over all trainings x episodes; bootstrap over trainings, then episodes, for episode means; "
             "Student t over trainings for per-training figures).", ""]
