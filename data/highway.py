@@ -19,6 +19,7 @@ import copy
 from dataclasses import dataclass
 
 import numpy as np
+from PIL import Image
 
 from core.jobs import UserError, build, job_config
 from data import outcomes
@@ -291,3 +292,16 @@ class HighwayScenario(DenseScenario):
         env = DenseMergeEnv(config={"scenario": self})
         env.reset(seed=seed)
         return HighwayWorld(env, self.params)
+
+    def render(self, seed: int, states, path):
+        """A GIF at `path` of the episode `states` (T+1, M, 4) of world `seed`, drawn by highway-env's renderer."""
+        env = DenseMergeEnv(config={"scenario": self}, render_mode="rgb_array")
+        env.reset(seed=seed)
+        frames = []
+        for z in np.asarray(states):
+            for v, zi in zip(sorted(env.road.vehicles, key=lambda v: v.car_id), to_ours(z)):  # the flip is its own inverse
+                v.position, v.heading, v.speed = zi[:2].copy(), zi[2], zi[3]
+            frames.append(Image.fromarray(env.render()))
+        env.close()
+        frames[0].save(path, save_all=True, append_images=frames[1:], duration=round(1000 * self.params.dt), loop=0)
+        return path

@@ -43,6 +43,10 @@ class Scenario:
         return dict(road=self.road, lane_change=self.lane_change, platoon_x=self.platoon_x, platoon_v=self.platoon_v,
                     drivers=[IDMDriver(**d) for d in self.drivers], gap_factor=self.gap_factor, ego=dict(self.ego))
 
+    def render(self, seed: int, states, path):
+        """A GIF of an episode by the world's own renderer, where it has one (highway-env); None here."""
+        return None
+
     def make_world(self, seed: int) -> World:
         """A fresh world for one episode; the seed fixes sampled quantities and every hidden yield decision."""
         rng = np.random.default_rng(seed)

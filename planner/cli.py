@@ -58,7 +58,8 @@ def run(cfg: DictConfig) -> dict:
             mlflow.log_metrics(results[m])
             mlflow.log_artifact(str(csv_path))
             own = report.figures({m: ep}, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) if cfg.plots else []
-            for p in own + shared:
+            rendered = scenario.render(cfg.seed, ep.states, out_dir / f"render_{m}.gif") if cfg.plots else None
+            for p in own + shared + ([rendered] if rendered else []):
                 mlflow.log_artifact(str(p), "plots")
             if ep.notes:
                 mlflow.set_tag("notes", "; ".join(ep.notes))

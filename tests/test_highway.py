@@ -128,3 +128,17 @@ def test_highway_env_missing_names_the_extra():
     code = "import sys; sys.modules['highway_env'] = None\nimport data.highway"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode != 0 and "pip install -e '.[highway]'" in out.stderr.strip().splitlines()[-1]
+
+
+def test_an_episode_renders_as_a_gif_by_highway_envs_renderer(tmp_path):
+    from PIL import Image
+
+    scenario = build(job_config("planner", ["scenario=highway"]).scenario)
+    world = scenario.make_world(3)
+    states = [world.states()]
+    for _ in range(2):
+        world.step(np.array([0.1, 0.0]))
+        states.append(world.states())
+    path = scenario.render(3, states, tmp_path / "run.gif")
+    with Image.open(path) as gif:
+        assert gif.n_frames == 3 and gif.size == (900, 180)
