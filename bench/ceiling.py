@@ -100,69 +100,77 @@ class GapPolicy:
         return control(ego, y, a, self)
 
 
-@dataclass(frozen=True)
-class CutInPolicy:
-    """Hold y_wait (the lane centre, or leaning towards the target lane to ask for room) at the nearby stream's speed
-    plus dv until step `enter`, then steer straight into the target lane and follow its leader by IDM: the direct
-    cut-in that a planner without a gap model makes, and the nudge-then-cut-in of one that leans first; SI units."""
+@dataclass(frozen=True, kw_only=True)
+class WaitThenEnter:
+    """What a cut-in and gap acceptance share: hold y_wait at the nearby stream's speed plus dv (never below v_floor)
+    while waiting, and once turned in follow the target lane's leader by IDM; SI units."""
 
     y_ref: float  # target lane centre (m)
     x_ref: float  # the ego's lane ends here (m)
-    enter: int  # the step at which the ego turns in
+    y_wait: float  # lateral position held while waiting: the lane centre, or leaning in to ask for room (m)
     dv: float  # speed relative to the nearby target-lane cars while waiting (m/s)
-    y_wait: float  # lateral position held until then (m)
     car_length: float  # m
     params: BicycleParams
+    v_floor: float = -np.inf  # the lowest waiting speed (m/s)
     k_v: float = 1.5  # speed loop gain (1/s)
     k_y: float = 2.0  # lateral gain of the steering law (1/s)
     a_bounds: tuple = (-4.0, 3.0)  # the ego's acceleration limits (m/s^2): the planner's mpc.a_box
     follow: IDMDriver = field(default_factory=lambda: IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0))
 
+    def pick(self, z):
+        """No gap chosen in advance: whatever is beside the ego when it turns."""
+        return None
+
+    def around(self, z):
+        """(target-lane mask (M-1,), leader id or None, ids behind the ego) in states z (M, 4)."""
+        ego = z[0]
+        lane = np.abs(z[1:, 1] - self.y_ref) < 2.0
+        ahead, behind = (np.flatnonzero(lane & side) + 1 for side in (z[1:, 0] > ego[0], z[1:, 0] <= ego[0]))
+        return lane, (ahead[np.argmin(z[ahead, 0])] if len(ahead) else None), behind
+
+    def wait(self, z, lane):
+        """(y (m), a (m/s^2)) while waiting."""
+        ego = z[0]
+        near = lane & (np.abs(z[1:, 0] - ego[0]) < 15.0)
+        v_des = max(self.v_floor, (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv)
+        return self.y_wait, self.k_v * (min(v_des, stop_speed(ego[0], self.x_ref)) - ego[3])
+
+    def enter(self, z, leader):
+        """(y (m), a (m/s^2)) once turned in: the target lane's centre behind its leader."""
+        ego = z[0]
+        if leader is None:
+            return self.y_ref, self.follow.acceleration(ego[3])
+        return self.y_ref, self.follow.acceleration(ego[3], z[leader, 0] - ego[0] - self.car_length, z[leader, 3])
+
+
+@dataclass(frozen=True, kw_only=True)
+class CutInPolicy(WaitThenEnter):
+    """Wait until step `enter`, then steer straight into the target lane: the direct cut-in that a planner without a
+    gap model makes, and the nudge-then-cut-in of one that leans first; SI units."""
+
+    enter_at: int  # the step at which the ego turns in
+
     @property
     def name(self):
         """How the search reports this strategy."""
-        return f"cut in at step {self.enter}, stream speed {self.dv:+.1f} m/s, waiting at y = {self.y_wait} m"
-
-    def pick(self, z):
-        """No gap chosen in advance: the cut-in takes whatever is beside the ego when it turns."""
-        return None
+        return f"cut in at step {self.enter_at}, stream speed {self.dv:+.1f} m/s, waiting at y = {self.y_wait} m"
 
     def __call__(self, z, target, k):
         """Control [delta (rad), a (m/s^2)] at step k in states z (M, 4)."""
-        ego = z[0]
-        lane = np.abs(z[1:, 1] - self.y_ref) < 2.0
-        near = lane & (np.abs(z[1:, 0] - ego[0]) < 15.0)
-        ahead = np.flatnonzero(lane & (z[1:, 0] > ego[0])) + 1
-        leader = ahead[np.argmin(z[ahead, 0])] if len(ahead) else None
-        if k >= self.enter:
-            y = self.y_ref
-            a = self.follow.acceleration(ego[3]) if leader is None else \
-                self.follow.acceleration(ego[3], z[leader, 0] - ego[0] - self.car_length, z[leader, 3])
-        else:
-            y = self.y_wait
-            v_des = (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv
-            a = self.k_v * (min(v_des, stop_speed(ego[0], self.x_ref)) - ego[3])
-        return control(ego, y, a, self)
+        lane, leader, _ = self.around(z)
+        y, a = self.enter(z, leader) if k >= self.enter_at else self.wait(z, lane)
+        return control(z[0], y, a, self)
 
 
-@dataclass(frozen=True)
-class AcceptPolicy:
-    """Hold y_wait at the nearby stream's speed plus dv (never below 0: a large negative dv waits at a standstill) and
-    turn in as soon as the gap beside the ego leaves `clearance` to its front car and to its back car, or its back car
-    has stopped for it; once its centre is over the lane line it stays committed and follows its leader by IDM: gap
-    acceptance, as a driver waiting at a lane's end does; SI units."""
+@dataclass(frozen=True, kw_only=True)
+class AcceptPolicy(WaitThenEnter):
+    """Wait (down to a standstill: a large negative dv) and turn in as soon as the gap beside the ego leaves `clearance`
+    to its front car and to its back car, or its back car has stopped for it; committed once its centre is over the
+    lane line: gap acceptance, as a driver waiting at a lane's end does; SI units."""
 
-    y_ref: float  # target lane centre (m)
-    x_ref: float  # the ego's lane ends here (m)
-    y_wait: float  # lateral position held while waiting (m)
-    dv: float  # speed relative to the nearby target-lane cars while waiting (m/s)
     clearance: float  # bumper clearance to the gap's front and back cars needed to turn in (m)
-    car_length: float  # m
-    params: BicycleParams
     v_stopped: float = 0.5  # a back car this slow has stopped for the ego (m/s)
-    k_v: float = 1.5  # speed loop gain (1/s)
-    k_y: float = 2.0  # lateral gain of the steering law (1/s)
-    a_bounds: tuple = (-4.0, 3.0)  # the ego's acceleration limits (m/s^2): the planner's mpc.a_box
+    v_floor: float = 0.0
     follow: IDMDriver = field(default_factory=lambda: IDMDriver(T=0.6, s0=1.0, a_max=3.0, b=3.0))
 
     @property
@@ -170,28 +178,15 @@ class AcceptPolicy:
         """How the search reports this strategy."""
         return f"accept a gap of {self.clearance} m, stream speed {self.dv:+.1f} m/s, waiting at y = {self.y_wait} m"
 
-    def pick(self, z):
-        """No gap chosen in advance: the first one that opens beside the ego."""
-        return None
-
     def __call__(self, z, target, k):
         """Control [delta (rad), a (m/s^2)] at step k in states z (M, 4)."""
         ego = z[0]
-        lane = np.abs(z[1:, 1] - self.y_ref) < 2.0
-        ahead, behind = (np.flatnonzero(lane & side) + 1 for side in (z[1:, 0] > ego[0], z[1:, 0] <= ego[0]))
-        leader = ahead[np.argmin(z[ahead, 0])] if len(ahead) else None
+        lane, leader, behind = self.around(z)
         room_front = z[leader, 0] - ego[0] - self.car_length if leader is not None else np.inf
         room_back = ego[0] - z[behind, 0].max() - self.car_length if len(behind) else np.inf
         lag_gone = room_back >= self.clearance or z[behind[np.argmax(z[behind, 0])], 3] <= self.v_stopped
-        if abs(ego[1] - self.y_ref) < 2.0 or (room_front >= self.clearance and lag_gone):
-            y = self.y_ref
-            a = self.follow.acceleration(ego[3]) if leader is None else \
-                self.follow.acceleration(ego[3], room_front, z[leader, 3])
-        else:
-            y = self.y_wait
-            near = lane & (np.abs(z[1:, 0] - ego[0]) < 15.0)
-            v_des = max(0.0, (z[1:][near, 3].mean() if near.any() else ego[3]) + self.dv)
-            a = self.k_v * (min(v_des, stop_speed(ego[0], self.x_ref)) - ego[3])
+        turned = abs(ego[1] - self.y_ref) < 2.0 or (room_front >= self.clearance and lag_gone)
+        y, a = self.enter(z, leader) if turned else self.wait(z, lane)
         return control(ego, y, a, self)
 
 
@@ -234,9 +229,10 @@ def policies(scenario, search) -> list:
     depth and clearance."""
     gaps = range(-search.gaps, search.gaps + 1)
     length, params = scenario.road.car_length, scenario.params
-    cut_ins = [CutInPolicy(scenario.y_ref, scenario.x_ref, e, dv, y, length, params)
+    common = dict(y_ref=scenario.y_ref, x_ref=scenario.x_ref, car_length=length, params=params)
+    cut_ins = [CutInPolicy(enter_at=e, dv=dv, y_wait=y, **common)
                for y, e, dv in itertools.product(search.y_wait, search.enter, search.dv)]
-    accepts = [AcceptPolicy(scenario.y_ref, scenario.x_ref, y, dv, c, length, params)
+    accepts = [AcceptPolicy(y_wait=y, dv=dv, clearance=c, **common)
                for y, dv, c in itertools.product(search.y_wait, search.accept_dv, search.clearance)]
     return cut_ins + accepts + [GapPolicy(scenario.y_ref, scenario.x_ref, g, y, c, length, params)
                                 for g, y, c in itertools.product(gaps, search.y_lean, search.clearance)]

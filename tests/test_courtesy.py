@@ -111,7 +111,8 @@ def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
 
 def test_gap_acceptance_turns_in_ahead_of_a_car_stopped_for_it_and_never_reverses():
     sc = scenario("dense")
-    policy = ceiling.AcceptPolicy(sc.y_ref, sc.x_ref, 1.8, -10.0, 0.5, sc.road.car_length, sc.params)
+    policy = ceiling.AcceptPolicy(y_ref=sc.y_ref, x_ref=sc.x_ref, y_wait=1.8, dv=-10.0, clearance=0.5,
+                                  car_length=sc.road.car_length, params=sc.params)
     ego = [20.0, 1.8, 0.3, 0.0]  # waiting at a standstill, leaning in
     front = [28.0, 4.0, 0.0, 5.0]  # room ahead
     for v_back, turns in [(0.0, True), (5.0, False)]:  # the car beside, its front past the ego's rear
