@@ -111,8 +111,23 @@ class DenseMergeEnv(AbstractEnv):
         })
         return cfg
 
+    def check(self):
+        """One UserError for a config value this merge cannot honour."""
+        c, a = self.config, self.config["action"]
+        if a.get("type") != "ContinuousAction":
+            raise UserError(f"action.type={a.get('type')}: {ENV_ID} takes ContinuousAction ([acceleration, steering])")
+        for key in ("acceleration_range", "steering_range"):
+            lo, hi = a.get(key, (0, 0))
+            if not lo < hi:
+                raise UserError(f"action.{key}={[lo, hi]}: needs low < high")
+        if c["simulation_frequency"] % c["policy_frequency"]:
+            raise UserError(f"policy_frequency={c['policy_frequency']}: must divide simulation_frequency={c['simulation_frequency']}")
+        if not (isinstance(c["duration"], int) and c["duration"] > 0):
+            raise UserError(f"duration={c['duration']}: must be a positive number of decisions")
+
     def define_spaces(self):
         """highway-env's action space; our observation (its factory knows only its own types)."""
+        self.check()
         obs_cfg = self.config["observation"]
         self.config["observation"] = {"type": "Kinematics"}
         super().define_spaces()
@@ -141,7 +156,7 @@ class DenseMergeEnv(AbstractEnv):
         seed = self.world_seed if self.world_seed is not None else int(self.np_random.integers(2**31))
         start = DenseScenario.make_world(sc, seed)  # our draw of the start: states and drivers, not its dynamics
         self.ours = start.road
-        self.b_imposed, self.merged = 0.0, False
+        self.b_imposed, self.merged, self.paid = 0.0, False, False
         self._make_road(start.road, sc.x_ref)
         self._make_vehicles(start.states(), start.drivers, start.lane_change, sc.b_max)
 
@@ -180,19 +195,24 @@ class DenseMergeEnv(AbstractEnv):
         """highway-env's sub-steps of one decision, then the braking they imposed on the others (m/s^2), for `info`."""
         before = self.states()
         super()._simulate(action)
-        self.b_imposed = max(self.b_imposed, outcomes.b_imposed_max([before, self.states()], 1.0 / self.config["policy_frequency"]))
+        z, sc = self.states(), self.scenario()
+        self.b_imposed = max(self.b_imposed, outcomes.b_imposed_max([before, z], 1.0 / self.config["policy_frequency"]))
+        self.merged = self.merged or bool(abs(z[0, 1] - sc.y_ref) <= sc.merge_tol and z[0, 0] < sc.x_ref)
 
     def _info(self, obs, action=None) -> dict:
         """highway-env's info with ours: merged, crashed, b_imposed_max (m/s^2, so far), courteous."""
-        sc, z = self.scenario(), self.states()
-        merged = self.merged or bool(abs(z[0, 1] - sc.y_ref) <= sc.merge_tol and z[0, 0] < sc.x_ref)
-        self.merged = merged
-        return {"speed": self.vehicle.speed, "crashed": self.vehicle.crashed, "merged": merged,
-                "b_imposed_max": self.b_imposed, "courteous": merged and not self.vehicle.crashed and self.b_imposed <= sc.b_safe}
+        return {"speed": self.vehicle.speed, "crashed": self.vehicle.crashed, "merged": self.merged,
+                "b_imposed_max": self.b_imposed, "courteous": self.courteous()}
+
+    def courteous(self) -> bool:
+        """Merged before the lane's end, no crash, nobody made to brake harder than b_safe so far."""
+        return self.merged and not self.vehicle.crashed and self.b_imposed <= self.scenario().b_safe
 
     def _reward(self, action) -> float:
         """1 on the step the merge completes courteously, else 0: the benchmark's success, not a shaping term."""
-        return 0.0
+        pay = self.courteous() and not self.paid
+        self.paid |= pay
+        return float(pay)
 
     def _is_terminated(self) -> bool:
         """A crash, or the ego past the end of its lane (merged or not: the episode's question is answered)."""

@@ -84,6 +84,7 @@ def test_success_flag_on_hand_built_episodes():
     info = e.step(highway.to_action(np.zeros(2), e.config["action"]["acceleration_range"],
                                     e.config["action"]["steering_range"]))[-1]
     assert info["merged"] and not info["crashed"] and info["b_imposed_max"] <= sc.b_safe and info["courteous"]
+    assert e._reward(None) == 0.0  # the courteous merge paid once, on its step
     # the same, with a follower put 1.5 m behind a stopped car: it brakes harder than b_safe (within b_max): not courteous
     follower, leader = e.road.vehicles[-1], e.road.vehicles[-2]
     leader.speed, follower.position = 0.0, leader.position - np.array([highway.Vehicle.LENGTH + 1.5, 0.0])
@@ -117,6 +118,10 @@ def test_bad_input_is_one_clear_line():
         MergePolicy(["gradients=cv", "method=admm"])(np.zeros((24, 6)))
     with pytest.raises(UserError, match="observation.type=Kinematics"):
         env(observation={"type": "Kinematics"})
+    with pytest.raises(UserError, match=r"action.steering_range=\[0.5, -0.5\]: needs low < high"):
+        env(action={"type": "ContinuousAction", "acceleration_range": [-5, 5], "steering_range": [0.5, -0.5]})
+    with pytest.raises(UserError, match="policy_frequency=4: must divide simulation_frequency=15"):
+        env(policy_frequency=4)
     with pytest.raises(UserError, match="needs a dense scenario"):
         env(scenario="two_lane")
     world = build(job_config("planner", ["scenario=highway"]).scenario).make_world(0)
