@@ -12,7 +12,9 @@ from core.jobs import UserError
 from core.rollout import b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
-from planner import admm, cost, dynamics
+from planner import admm, cost, dynamics, jit_zstep
+from planner.daqp_qp import DaqpBoxQP
+from planner.jit_zstep import CompiledSafety
 from planner.qp import SolverFailure
 from planner.safety import Safety
 
@@ -39,6 +41,7 @@ class Settings:
     v_box: tuple  # m/s
     y_margin: float  # how far the ego's centre may leave the outer lane centres (m)
     linearize: str  # last_observed | along_plan
+    core: str  # compiled (numba kernels, DAQP) | reference (numpy, OSQP)
     admm: admm.ADMMSettings  # planner.admm.admm_solve's max_iters, tol_F, tol_step
     osqp: dict  # OSQP settings of every sub-problem
     check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
@@ -129,7 +132,11 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
     start, dyn = start_point(s, obs, warm)
     lo, hi = state_box(s)
     prob = admm.Problem(dyn, *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box), tuple(s.a_box), lo, hi)
-    solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
+    if s.core == "compiled":
+        safety = CompiledSafety(source, obs.history, s.R, s.T_p)
+        solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp, DaqpBoxQP)
+    else:
+        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
     return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
 
 

@@ -1,0 +1,54 @@
+"""The one place DAQP (a dual active-set solver for small dense QPs) is called, by the compiled core (mpc.core=compiled):
+the Delta- and alpha-update box QPs when their unconstrained minimiser leaves the box, and the Z-step's QPs with b_i's
+linearisation as soft constraints priced by an L1 penalty, warm-started across one MPC step."""
+import daqp
+import numpy as np
+
+from planner.qp import BoxQP, SolverFailure
+
+INF = 1e30  # DAQP's infinity: bounds at or beyond it are absent
+SOFT_QUADRATIC = 1e-8  # DAQP's reciprocal quadratic weight on a soft violation: ~0, so the price is the L1 one alone
+
+
+def optimal(x, exitflag):
+    """x if DAQP found an optimum (1; 2: with soft constraints violated), else SolverFailure naming its exit flag."""
+    if exitflag < 1 or not np.all(np.isfinite(x)):
+        raise SolverFailure(f"DAQP exit flag {exitflag}")
+    return x
+
+
+class DaqpBoxQP(BoxQP):
+    """BoxQP whose minimiser outside the box comes from DAQP (simple bounds only) instead of OSQP."""
+
+    def solve(self, q):
+        """The box QP's minimiser for linear term q."""
+        x = -(self.P_inv @ q)
+        if np.all(x >= self.lo) and np.all(x <= self.hi):
+            return x
+        x, _, flag, _ = daqp.solve(self.P, q, np.zeros((0, len(q))), self.hi, self.lo)
+        return optimal(x, flag)
+
+
+class SoftQP:
+    """min 1/2 x'Hx + f'x + price sum max(0, c_lo - Ax) s.t. lo <= x <= hi, H fixed; set up at its first solve, then
+    updated and warm-started from the last active set. `soft` False: the rows of A are hard (c_lo may be -INF)."""
+
+    def __init__(self, H, price: float, soft: bool):
+        self.H, self.price, self.soft = np.ascontiguousarray(H), price, soft
+        self.model = None
+
+    def solve(self, f, lo, hi, A, c_lo):
+        """The minimiser x for this linear term, box lo, hi (n,) and rows c_lo <= Ax (metres, m^2)."""
+        bu = np.concatenate([hi, np.full(len(A), INF)])
+        bl = np.concatenate([lo, c_lo])
+        if self.model is None:
+            n, m = len(f), len(bu)
+            sense = np.concatenate([np.zeros(n), np.full(len(A), 8 if self.soft else 0)]).astype(np.int32)
+            self.model = daqp.Model()
+            self.model.setup(self.H, f, A, bu, bl, sense)
+            weights = np.full(m, SOFT_QUADRATIC)
+            self.model.soft_weights(rho_l=weights, rho_u=weights, w_l=np.full(m, self.price), w_u=np.full(m, self.price))
+        else:
+            self.model.update(f=f, A=A, bupper=bu, blower=bl)
+        x, _, flag, _ = self.model.solve()
+        return optimal(x, flag)

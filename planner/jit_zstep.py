@@ -1,0 +1,105 @@
+"""The compiled core's Z-step (mpc.core=compiled): planner.zstep's trust-region SQP with its arithmetic in numba kernels,
+b_i from the compiled rollouts (planner.jit_rollout) and each QP solved by DAQP with the linearised b_i >= 0 as soft
+rows priced by the L1 slack penalty (planner.daqp_qp), so the slack needs no variables of its own."""
+from functools import partial
+
+import numpy as np
+from numba import njit
+
+from core.rollout import ego_xy
+from planner.daqp_qp import INF, SoftQP
+from planner.jit_rollout import b_i_affine, compiled_jacobian
+from planner.safety import Safety
+from planner.zstep import SQPZStep
+
+
+class CompiledSafety(Safety):
+    """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts."""
+
+    def __init__(self, source, history, R, T_p):
+        super().__init__(source, history, R, T_p)
+        self.history = np.ascontiguousarray(self.history)
+        self.jacobian = compiled_jacobian(source) or source.jacobian
+
+    def reused(self, Z):
+        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) about the last linearisation (see Safety.reused)."""
+        ego0, values0, grads = self._lin
+        return b_i_affine(np.ascontiguousarray(ego_xy(Z, self.T_p)), ego0, values0, np.ascontiguousarray(grads), self.R)
+
+
+@njit(cache=True)
+def z_qp(lin_q, Z, b, Jb, radius, lo, hi, xy, hard, lambda_s):
+    """The SQP step's QP data at Z: linear term (penalty form: minus lambda_s sum_i d b_i / d Z), the state box cut to
+    the trust region on the ego's x, y (m), and the rows' lower bounds Jb Z - b (hard form; -INF: no row bound)."""
+    f = lin_q.copy()
+    if not hard:
+        f -= lambda_s * Jb.sum(axis=0)
+    tr = np.where(xy, radius, np.inf)
+    c_lo = Jb @ Z - b if hard else np.full(len(b), -INF)
+    return f, np.maximum(np.maximum(lo, Z - tr), -INF), np.minimum(np.minimum(hi, Z + tr), INF), c_lo
+
+
+@njit(cache=True)
+def merit(H, lin_q, Z, b, hard, slack_penalty, lambda_s):
+    """1/2 Z'HZ + lin_q'Z plus the L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
+    value = 0.5 * Z @ (H @ Z) + lin_q @ Z
+    return value + slack_penalty * np.maximum(0.0, -b).sum() if hard else value - lambda_s * b.sum()
+
+
+@njit(cache=True)
+def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambda_s, max_radius, min_radius):
+    """Trust-region test of a step Z -> Z_new: (accepted, next radius (m), step size (inf-norm, m)), as SQPZStep."""
+    here = merit(H, lin_q, Z, b, hard, slack_penalty, lambda_s)
+    predicted = here - merit(H, lin_q, Z_new, b + Jb @ (Z_new - Z), hard, slack_penalty, lambda_s)
+    actual = here - merit(H, lin_q, Z_new, b_new, hard, slack_penalty, lambda_s)
+    step = np.max(np.abs(Z_new - Z))
+    if actual >= 0.1 * predicted or predicted <= 1e-12:
+        if actual >= 0.75 * predicted and step >= 0.99 * radius:
+            radius = min(2.0 * radius, max_radius)
+        return True, radius, step
+    return False, max(0.5 * radius, min_radius), step
+
+
+class CompiledSQPZStep(SQPZStep):
+    """SQPZStep (same settings, same iterates to the QP solvers' tolerances) with numba kernels and DAQP."""
+
+    def __init__(self, prob, safety, osqp_settings, settings):
+        self.C, self.rho, self.safety, self.s = prob.dyn.C, prob.rho, safety, settings
+        self.lo, self.hi = prob.z_lo, prob.z_hi
+        self.Phi_3 = prob.Phi_3
+        self.H = np.ascontiguousarray(prob.Phi_3.P + prob.rho * (prob.dyn.C.T @ prob.dyn.C))
+        self.xy = np.tile([True, True, False, False], len(self.lo) // 4)
+        self.hard = settings.mode == "hard"
+        self.qp = SoftQP(self.H, settings.slack_penalty, soft=self.hard)
+
+    def __call__(self, Z, mu, c_Z, zstate=None):
+        """Z_{k+1} from Z_k as SQPZStep.__call__; info: SQP iterations, max slack (m^2), infeasible, min b_i, lin_offset."""
+        s = self.s
+        radius = s.trust_radius if zstate is None else zstate
+        lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
+        Z = np.clip(Z, self.lo, self.hi)
+        b, Jb = self.safety.linearize(Z, 0.0 if zstate is None else s.reuse_radius)
+        b_Z, slack, its = b, 0.0, 0
+        for its in range(1, s.max_iters + 1):
+            f, lo, hi, c_lo = z_qp(lin_q, Z, b, Jb, radius, self.lo, self.hi, self.xy, self.hard, s.lambda_s)
+            x = self.qp.solve(f, lo, hi, Jb, c_lo)
+            slack = float(max(np.max(c_lo - Jb @ x), 0.0)) if self.hard else 0.0
+            Z_new = np.clip(x, self.lo, self.hi)
+            b_new = self.safety.trial(Z_new, s.reuse_radius)
+            accepted, radius, step = verdict(self.H, lin_q, Z, Z_new, b, Jb, b_new, radius, self.hard, s.slack_penalty,
+                                             s.lambda_s, s.max_radius, s.min_radius)
+            if accepted:
+                Z, b_Z = Z_new, b_new
+                if step < s.tol:
+                    break
+                b, Jb = self.safety.linearize(Z, s.reuse_radius)
+        return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > s.slack_tol,
+                           "b_min": float(b_Z.min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
+
+
+def compiled(zstep):
+    """The compiled counterpart of a bound Z-step class (conf/zstep/): sqp's is CompiledSQPZStep with the same settings;
+    another (pygranso, which differentiates through torch) runs as it is."""
+    if getattr(zstep, "func", None) is SQPZStep:
+        return partial(CompiledSQPZStep, *zstep.args, **zstep.keywords)
+    return zstep
