@@ -58,10 +58,10 @@ class Solvers(NamedTuple):
     zstep: Any
 
 
-def solvers(prob: Problem, zstep, safety, osqp_settings: dict, box_qp_class=BoxQP) -> Solvers:
-    """The Delta- and alpha-update box QPs (P = P_Phi + rho M'M, M = A or B; q set per iteration; a planner.qp.BoxQP or
-    a subclass with another solver) and the Z-step built by `zstep(prob, safety, osqp_settings)`."""
-    box_qp = lambda Phi, M, box: box_qp_class(Phi.P + prob.rho * M.T @ M, Phi.q, *box, osqp_settings)
+def solvers(prob: Problem, zstep, safety, osqp_settings: dict) -> Solvers:
+    """The Delta- and alpha-update box QPs (P = P_Phi + rho M'M, M = A or B; q set per iteration) and the Z-step built by
+    `zstep(prob, safety, osqp_settings)`."""
+    box_qp = lambda Phi, M, box: BoxQP(Phi.P + prob.rho * M.T @ M, Phi.q, *box, osqp_settings)
     return Solvers(box_qp(prob.Phi_1, prob.dyn.A, prob.delta_box), box_qp(prob.Phi_2, prob.dyn.B, prob.a_box),
                    zstep(prob, safety, osqp_settings))
 

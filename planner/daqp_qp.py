@@ -1,10 +1,10 @@
 """The one place DAQP (a dual active-set solver for small dense QPs) is called, by the compiled core (mpc.core=compiled):
-the Delta- and alpha-update box QPs when their unconstrained minimiser leaves the box, and the Z-step's QPs with b_i's
+the Delta- and alpha-update box QPs when their closed-form minimiser leaves the box, and the Z-step's QPs with b_i's
 linearisation as soft constraints priced by an L1 penalty, warm-started across one MPC step."""
 import daqp
 import numpy as np
 
-from planner.qp import BoxQP, SolverFailure
+from planner.qp import SolverFailure
 
 INF = 1e30  # DAQP's infinity: bounds at or beyond it are absent
 SOFT_QUADRATIC = 1e-8  # DAQP's reciprocal quadratic weight on a soft violation: ~0, so the price is the L1 one alone
@@ -17,16 +17,10 @@ def optimal(x, exitflag):
     return x
 
 
-class DaqpBoxQP(BoxQP):
-    """BoxQP whose minimiser outside the box comes from DAQP (simple bounds only) instead of OSQP."""
-
-    def solve(self, q):
-        """The box QP's minimiser for linear term q."""
-        x = -(self.P_inv @ q)
-        if np.all(x >= self.lo) and np.all(x <= self.hi):
-            return x
-        x, _, flag, _ = daqp.solve(self.P, q, np.zeros((0, len(q))), self.hi, self.lo)
-        return optimal(x, flag)
+def box_qp(P, q, lo, hi):
+    """argmin 1/2 x'Px + q'x on the box lo <= x <= hi (P positive definite, dense)."""
+    x, _, flag, _ = daqp.solve(P, q, np.zeros((0, len(q))), hi, lo)
+    return optimal(x, flag)
 
 
 class SoftQP:

@@ -21,10 +21,20 @@ class CompiledSafety(Safety):
         self.history = np.ascontiguousarray(self.history)
         self.jacobian = compiled_jacobian(source) or source.jacobian
 
+    def offset(self, Z):
+        """How far (m, largest over the horizon and x, y) the ego's planned xy in Z lie from the last linearisation's."""
+        return np.inf if self._lin is None else offset(Z, self._lin[0])
+
     def reused(self, Z):
         """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) about the last linearisation (see Safety.reused)."""
         ego0, values0, grads = self._lin
         return b_i_affine(np.ascontiguousarray(ego_xy(Z, self.T_p)), ego0, values0, np.ascontiguousarray(grads), self.R)
+
+
+@njit(cache=True)
+def offset(Z, ego0):
+    """max |ego xy in Z - ego0| (m) over the horizon and x, y; Z (4T_p,), ego0 (T_p, 2)."""
+    return np.max(np.abs(Z.reshape(-1, 4)[:, :2] - ego0))
 
 
 @njit(cache=True)

@@ -12,8 +12,7 @@ from core.jobs import UserError
 from core.rollout import b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
-from planner import admm, cost, dynamics, jit_zstep
-from planner.daqp_qp import DaqpBoxQP
+from planner import admm, cost, dynamics, jit_admm, jit_zstep
 from planner.jit_zstep import CompiledSafety
 from planner.qp import SolverFailure
 from planner.safety import Safety
@@ -134,7 +133,7 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
     prob = admm.Problem(dyn, *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box), tuple(s.a_box), lo, hi)
     if s.core == "compiled":
         safety = CompiledSafety(source, obs.history, s.R, s.T_p)
-        solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp, DaqpBoxQP)
+        solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp)
     else:
         solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
     return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
@@ -201,7 +200,7 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         return fallback(s, obs, source, warm, "non-finite observation")
     try:
         prob, solvers, start = build(s, obs, source, warm, zstep)
-        st, solve = admm.admm_solve(prob, solvers, start, *s.admm)
+        st, solve = (jit_admm if s.core == "compiled" else admm).admm_solve(prob, solvers, start, *s.admm)
     except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
         return fallback(s, obs, source, warm, f"solver failure ({e})")
     except UserError:  # the user's to fix (a missing optional solver): one line, not a fallback every step
