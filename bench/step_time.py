@@ -136,11 +136,25 @@ def cost_gap(J_admm, J_ipopt) -> np.ndarray:
     return (J_admm[ok] - J_ipopt[ok]) / np.abs(J_ipopt[ok])
 
 
-def part(key) -> str:
-    """The part of an MPC step a profiled function belongs to: its library, or its file in this repository."""
+def kernels() -> set:
+    """The profile keys (file, line, name) of the compiled core's numba kernels (cProfile sees a dispatcher call as its
+    Python function's)."""
+    from planner import jit_admm, jit_rollout, jit_zstep
+
+    funcs = [f.py_func for m in (jit_admm, jit_rollout, jit_zstep) for f in vars(m).values() if hasattr(f, "py_func")]
+    return {(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
+
+
+def part(key, compiled=frozenset()) -> str:
+    """The part of an MPC step a profiled function belongs to: the compiled kernels (keys in `compiled`), its library,
+    or its file in this repository (Python)."""
     file, _, name = key
+    if key in compiled:
+        return "compiled kernels (numba)"
+    if file.endswith("planner/daqp_qp.py"):  # DAQP's Cython calls are invisible to cProfile: their time is their caller's
+        return "DAQP solves (in planner/daqp_qp.py)"
     if file == "~":  # a C function: name it by the extension it belongs to
-        return next((lib for lib in ("onnxruntime", "osqp", "torch") if lib in name), "numpy / builtins")
+        return next((lib for lib in ("onnxruntime", "osqp", "daqp", "torch") if lib in name), "numpy / builtins")
     if "site-packages/" in file:
         return file.split("site-packages/")[1].split("/")[0]
     tail = file.split("/")
@@ -148,19 +162,21 @@ def part(key) -> str:
 
 
 def profile(step, src, s_of, states) -> tuple[dict, dict]:
-    """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP solves: per
-    step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
+    """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP and DAQP
+    solves: per step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
     prof = cProfile.Profile()
     for state in states:
         prof.runcall(step, s_of(state.scenario), state.obs, src, state.warm)
     stats = pstats.Stats(prof).stats  # {(file, line, name): (primitive calls, calls, own s, cumulative s, callers)}
-    ms, calls = defaultdict(float), defaultdict(float)
+    ms, calls, compiled = defaultdict(float), defaultdict(float), kernels()
     for key, (_, n, own, _, _) in stats.items():
-        ms[part(key)] += 1e3 * own / len(states)
+        ms[part(key, compiled)] += 1e3 * own / len(states)
         if key[2] == "run" and "onnxruntime" in key[0]:  # InferenceSession.run, once per call (its C parts are not)
             calls["onnxruntime calls"] += n / len(states)
         if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
             calls["OSQP solves"] += n / len(states)
+        if key[0].endswith("planner/daqp_qp.py") and key[2] in ("solve", "box_qp"):
+            calls["DAQP solves"] += n / len(states)
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 
