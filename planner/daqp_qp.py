@@ -25,24 +25,26 @@ def box_qp(P, q, lo, hi):
 
 class SoftQP:
     """min 1/2 x'Hx + f'x + price sum max(0, c_lo - Ax) s.t. lo <= x <= hi, H fixed; set up at its first solve, then
-    updated and warm-started from the last active set. `soft` False: the rows of A are hard (c_lo may be -INF)."""
+    updated and warm-started from the last active set; A has `rows` rows. `soft` False: they are hard (c_lo may be -INF)."""
 
-    def __init__(self, H, price: float, soft: bool):
+    def __init__(self, H, price: float, soft: bool, rows: int):
         self.H, self.price, self.soft = np.ascontiguousarray(H), price, soft
+        self.bu = np.full(len(H) + rows, INF)  # [box; rows]: the rows' upper bounds stay absent
+        self.bl = np.empty(len(H) + rows)
         self.model = None
 
     def solve(self, f, lo, hi, A, c_lo):
         """The minimiser x for this linear term, box lo, hi (n,) and rows c_lo <= Ax (metres, m^2)."""
-        bu = np.concatenate([hi, np.full(len(A), INF)])
-        bl = np.concatenate([lo, c_lo])
+        n = len(f)
+        self.bu[:n], self.bl[:n], self.bl[n:] = hi, lo, c_lo
         if self.model is None:
-            n, m = len(f), len(bu)
+            m = len(self.bu)
             sense = np.concatenate([np.zeros(n), np.full(len(A), 8 if self.soft else 0)]).astype(np.int32)
             self.model = daqp.Model()
-            self.model.setup(self.H, f, A, bu, bl, sense)
+            self.model.setup(self.H, f, A, self.bu, self.bl, sense)
             weights = np.full(m, SOFT_QUADRATIC)
             self.model.soft_weights(rho_l=weights, rho_u=weights, w_l=np.full(m, self.price), w_u=np.full(m, self.price))
         else:
-            self.model.update(f=f, A=A, bupper=bu, blower=bl)
+            self.model.update(f=f, A=A, bupper=self.bu, blower=self.bl)
         x, _, flag, _ = self.model.solve()
         return optimal(x, flag)

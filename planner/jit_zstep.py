@@ -20,21 +20,47 @@ class CompiledSafety(Safety):
         super().__init__(source, history, R, T_p)
         self.history = np.ascontiguousarray(self.history)
         self.jacobian = compiled_jacobian(source) or source.jacobian
+        self._last = None  # (Z, the linearisation, (b_i, d b_i / d Z)) of the last `reused`
 
     def offset(self, Z):
         """How far (m, largest over the horizon and x, y) the ego's planned xy in Z lie from the last linearisation's."""
         return np.inf if self._lin is None else offset(Z, self._lin[0])
 
     def reused(self, Z):
-        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) about the last linearisation (see Safety.reused)."""
-        ego0, values0, grads = self._lin
-        return b_i_affine(np.ascontiguousarray(ego_xy(Z, self.T_p)), ego0, values0, np.ascontiguousarray(grads), self.R)
+        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) about the last linearisation (see Safety.reused); the last
+        result is kept, since the SQP step linearises an accepted trial plan again."""
+        if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
+            ego0, values0, grads = self._lin
+            self._last = (Z, self._lin, b_i_affine(np.ascontiguousarray(ego_xy(Z, self.T_p)), ego0, values0, grads, self.R))
+        return self._last[2]
+
+    def linearize(self, Z, reuse_radius=0.0):
+        """As Safety.linearize, with the new linearisation's derivative stored contiguous for the kernels."""
+        if self.offset(Z) > reuse_radius:
+            ego = np.ascontiguousarray(ego_xy(Z, self.T_p))
+            values, grads = self.jacobian(self.history, ego)
+            self._lin = (ego, np.ascontiguousarray(values), np.ascontiguousarray(grads))
+        return self.reused(Z)
 
 
 @njit(cache=True)
 def offset(Z, ego0):
     """max |ego xy in Z - ego0| (m) over the horizon and x, y; Z (4T_p,), ego0 (T_p, 2)."""
     return np.max(np.abs(Z.reshape(-1, 4)[:, :2] - ego0))
+
+
+@njit(cache=True)
+def z_start(q_3, C, rho, mu, c_Z, Z, lo, hi):
+    """The Z-update's linear term Phi_3's q + C'(mu - rho c_Z) and Z^k clipped to the state box."""
+    return q_3 + C.T @ (mu - rho * c_Z), np.minimum(np.maximum(Z, lo), hi)
+
+
+@njit(cache=True)
+def z_trial(x, Jb, c_lo, lo, hi, hard):
+    """The QP's solution as a trial Z (clipped to the state box, met by DAQP only to its tolerance) and the largest
+    violation of a linearised b_i row (m^2, 0 in penalty form)."""
+    slack = max(np.max(c_lo - Jb @ x), 0.0) if hard else 0.0
+    return np.minimum(np.maximum(x, lo), hi), slack
 
 
 @njit(cache=True)
@@ -74,27 +100,24 @@ class CompiledSQPZStep(SQPZStep):
     """SQPZStep (same settings, same iterates to the QP solvers' tolerances) with numba kernels and DAQP."""
 
     def __init__(self, prob, safety, osqp_settings, settings):
-        self.C, self.rho, self.safety, self.s = prob.dyn.C, prob.rho, safety, settings
+        self.C, self.rho, self.safety, self.s = np.ascontiguousarray(prob.dyn.C), prob.rho, safety, settings
         self.lo, self.hi = prob.z_lo, prob.z_hi
         self.Phi_3 = prob.Phi_3
         self.H = np.ascontiguousarray(prob.Phi_3.P + prob.rho * (prob.dyn.C.T @ prob.dyn.C))
         self.xy = np.tile([True, True, False, False], len(self.lo) // 4)
         self.hard = settings.mode == "hard"
-        self.qp = SoftQP(self.H, settings.slack_penalty, soft=self.hard)
+        self.qp = SoftQP(self.H, settings.slack_penalty, self.hard, (safety.history.shape[1] - 1) * (len(self.lo) // 4))
 
     def __call__(self, Z, mu, c_Z, zstate=None):
         """Z_{k+1} from Z_k as SQPZStep.__call__; info: SQP iterations, max slack (m^2), infeasible, min b_i, lin_offset."""
         s = self.s
         radius = s.trust_radius if zstate is None else zstate
-        lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
-        Z = np.clip(Z, self.lo, self.hi)
+        lin_q, Z = z_start(self.Phi_3.q, self.C, self.rho, mu, c_Z, Z, self.lo, self.hi)
         b, Jb = self.safety.linearize(Z, 0.0 if zstate is None else s.reuse_radius)
         b_Z, slack, its = b, 0.0, 0
         for its in range(1, s.max_iters + 1):
             f, lo, hi, c_lo = z_qp(lin_q, Z, b, Jb, radius, self.lo, self.hi, self.xy, self.hard, s.lambda_s)
-            x = self.qp.solve(f, lo, hi, Jb, c_lo)
-            slack = float(max(np.max(c_lo - Jb @ x), 0.0)) if self.hard else 0.0
-            Z_new = np.clip(x, self.lo, self.hi)
+            Z_new, slack = z_trial(self.qp.solve(f, lo, hi, Jb, c_lo), Jb, c_lo, self.lo, self.hi, self.hard)
             b_new = self.safety.trial(Z_new, s.reuse_radius)
             accepted, radius, step = verdict(self.H, lin_q, Z, Z_new, b, Jb, b_new, radius, self.hard, s.slack_penalty,
                                              s.lambda_s, s.max_radius, s.min_radius)
