@@ -7,7 +7,7 @@ import numpy as np
 from planner.qp import SolverFailure
 
 INF = 1e30  # DAQP's infinity: bounds at or beyond it are absent
-SOFT_QUADRATIC = 1e-8  # DAQP's reciprocal quadratic weight on a soft violation: ~0, so the price is the L1 one alone
+SOFT_RHO = 1e6  # DAQP's reciprocal quadratic weight on a soft violation s: s^2 / (2 SOFT_RHO) is negligible beside the L1 price
 
 
 def optimal(x, exitflag):
@@ -42,7 +42,7 @@ class SoftQP:
             sense = np.concatenate([np.zeros(n), np.full(len(A), 8 if self.soft else 0)]).astype(np.int32)
             self.model = daqp.Model()
             self.model.setup(self.H, f, A, self.bu, self.bl, sense)
-            weights = np.full(m, SOFT_QUADRATIC)
+            weights = np.full(m, SOFT_RHO)
             self.model.soft_weights(rho_l=weights, rho_u=weights, w_l=np.full(m, self.price), w_u=np.full(m, self.price))
         else:
             self.model.update(f=f, A=A, bupper=self.bu, blower=self.bl)
