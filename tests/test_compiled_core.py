@@ -12,7 +12,9 @@ from core.rollout import SLOTS, T_OBS, b_i, b_i_jacobian, ego_xy, rollout_jacobi
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
 from planner import jit_rollout
+from planner.daqp_qp import SoftQP
 from planner.gradients import ExactLocal, Surrogate
+from planner.qp import QP
 from planner.setup import make
 from surrogate import models
 from surrogate.export import export
@@ -101,3 +103,22 @@ def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(sta
     fd = np.stack([(b_i(affine(ego_xy(Z + h * e, 8)), R) - b_i(affine(ego_xy(Z - h * e, 8)), R)).reshape(-1) / (2 * h)
                    for e in np.eye(Z.size)], axis=1)
     assert np.abs(Jb - fd).max() < 1e-5 * max(1.0, np.abs(Jb).max())
+
+
+def test_soft_qp_prices_violations_like_the_explicit_slack_qp():
+    """DAQP's soft rows with the L1 price give the Z-step's elastic QP (slack variables s >= 0 priced linearly), solved
+    here by OSQP at tight tolerances, also where the rows cannot all hold inside the box."""
+    rng = np.random.default_rng(0)
+    n, m, price = 6, 4, 50.0
+    L = rng.normal(size=(n, n))
+    H, f, A = L @ L.T + n * np.eye(n), rng.normal(size=n), rng.normal(size=(m, n))
+    lo, hi = -np.ones(n), np.ones(n)
+    c_lo = np.array([20.0, -1.0, 0.5, 30.0])  # rows 0 and 3 out of reach in the box: violated at a price
+    x = SoftQP(H, price, True, m).solve(f, lo, hi, A, c_lo)
+    P = np.block([[H, np.zeros((n, m))], [np.zeros((m, n)), np.zeros((m, m))]])
+    G = np.block([[np.eye(n), np.zeros((n, m))], [A, np.eye(m)], [np.zeros((m, n)), np.eye(m)]])
+    tight = {"eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 200000, "polishing": True}
+    want = QP(P, np.concatenate([f, np.full(m, price)]), G, np.concatenate([lo, c_lo, np.zeros(m)]),
+              np.concatenate([hi, np.full(2 * m, np.inf)]), tight).solve()
+    assert np.max(c_lo - A @ x) > 1.0  # the price is paid, not the rows enforced
+    assert np.abs(x - want[:n]).max() < 1e-5
