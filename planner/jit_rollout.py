@@ -5,7 +5,6 @@ import math
 
 import numpy as np
 from numba import njit
-from numba.typed import List
 
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
@@ -62,11 +61,12 @@ def gelu(a):
 
 @njit(cache=True)
 def student_phi_jac(Ws, bs, s, window):
-    """The GELU student (distill.student) from its float64 weights, P folded into the first layer: next xy (SLOTS, 2)
-    and its exact local Jacobian (SLOTS*2, T_obs*SLOTS*2), the others' rows by one reverse sweep for all 2N outputs."""
+    """The GELU student (distill.student) from its float64 weights (tuples of the layers' W and b, P folded into the
+    first W): next xy (SLOTS, 2) and its exact local Jacobian (SLOTS*2, T_obs*SLOTS*2), the others' rows by one
+    reverse sweep for all 2N outputs."""
     T_obs, M, _ = window.shape
     h = window.reshape(-1).copy()
-    dhs = List()
+    dhs = []
     for k in range(len(Ws) - 1):
         h, dh = gelu(Ws[k] @ h + bs[k])
         dhs.append(dh)
@@ -116,8 +116,8 @@ def compiled_jacobian(source):
     if isinstance(source.predictor, ConstantVelocity):
         return lambda history, ego: cv_rollout(np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
     if isinstance(source.predictor, StudentPredictor):
-        Ws = List([np.ascontiguousarray(W) for W, _ in source.predictor.weights])
-        bs = List([np.ascontiguousarray(b) for _, b in source.predictor.weights])
+        Ws = tuple(np.ascontiguousarray(W) for W, _ in source.predictor.weights)
+        bs = tuple(np.ascontiguousarray(b) for _, b in source.predictor.weights)
         s = np.ascontiguousarray(source.predictor.s)
         return lambda history, ego: student_rollout(Ws, bs, s, np.ascontiguousarray(history, float),
                                                     np.ascontiguousarray(ego, float))

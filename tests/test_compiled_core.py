@@ -4,7 +4,6 @@ gradients match the reference maths and central differences."""
 import numpy as np
 import pytest
 import torch
-from numba.typed import List
 from test_surrogate import smooth_student
 
 from bench.states import collect, solver_step
@@ -79,7 +78,7 @@ def test_compiled_rollout_equals_the_reference_chain_rule(name, states):
 
 def test_compiled_student_jacobian_matches_central_differences(states):
     pred = StudentPredictor(smooth_student())
-    Ws, bs = List([W for W, _ in pred.weights]), List([b for _, b in pred.weights])
+    Ws, bs = tuple(W for W, _ in pred.weights), tuple(b for _, b in pred.weights)
     window = np.ascontiguousarray(states[3].obs.history)
     _, J = jit_rollout.student_phi_jac(Ws, bs, pred.s, window)
     h, flat = 1e-5, window.reshape(-1)
