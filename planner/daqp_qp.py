@@ -17,10 +17,23 @@ def optimal(x, exitflag):
     return x
 
 
-def box_qp(P, q, lo, hi):
-    """argmin 1/2 x'Px + q'x on the box lo <= x <= hi (P positive definite, dense)."""
-    x, _, flag, _ = daqp.solve(P, q, np.zeros((0, len(q))), hi, lo)
-    return optimal(x, flag)
+class DaqpBox:
+    """min 1/2 x'Px + q'x on the box of a planner.qp.BoxQP (its P, P^-1 and bounds kept here for the closed-form
+    kernels) by DAQP, set up at its first solve and warm-started from the last active set."""
+
+    def __init__(self, qp):
+        self.P, self.P_inv, self.lo, self.hi = qp.P, qp.P_inv, qp.lo, qp.hi
+        self.model = None
+
+    def solve(self, q):
+        """The box QP's minimiser for linear term q by DAQP."""
+        if self.model is None:
+            self.model = daqp.Model()
+            self.model.setup(self.P, q, np.zeros((0, len(q))), self.hi, self.lo)
+        else:
+            self.model.update(f=q)
+        x, _, flag, _ = self.model.solve()
+        return optimal(x, flag)
 
 
 class SoftQP:

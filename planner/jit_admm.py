@@ -5,7 +5,7 @@ import numpy as np
 from numba import njit
 
 from planner.admm import ADMMState, Problem, Solve, Solvers
-from planner.daqp_qp import box_qp
+from planner.daqp_qp import DaqpBox
 
 
 @njit(cache=True)
@@ -48,30 +48,26 @@ def z_residual(A, B, C, D, Delta, alpha, Z):
 
 
 @njit(cache=True)
-def mu_update(A, B, C, D, rho, Delta, alpha, Z, mu):
-    """mu + rho F(Delta, alpha, Z) and ||F|| (state units)."""
+def mu_update(A, B, C, D, rho, Delta, alpha, Z, mu, old_Delta, old_alpha, old_Z):
+    """mu + rho F(Delta, alpha, Z), with the stopping tests' ||F|| (state units) and iterate change (inf-norm over
+    Delta, alpha, Z against the sweep's start)."""
     residual = F(A, B, C, D, Delta, alpha, Z)
-    return mu + rho * residual, np.sqrt(residual @ residual)
+    change = max(np.max(np.abs(Delta - old_Delta)), np.max(np.abs(alpha - old_alpha)), np.max(np.abs(Z - old_Z)))
+    return mu + rho * residual, np.sqrt(residual @ residual), change
 
 
-@njit(cache=True)
-def change(old_Delta, old_alpha, old_Z, Delta, alpha, Z):
-    """The iterate change (inf-norm over Delta, alpha, Z)."""
-    return max(np.max(np.abs(Delta - old_Delta)), np.max(np.abs(alpha - old_alpha)), np.max(np.abs(Z - old_Z)))
-
-
-def box_solve(qp, update):
-    """The box QP's minimiser from an update kernel's (minimiser, inside, linear term); qp a planner.qp.BoxQP (its P,
-    P^-1 and box), solved by DAQP when the box is active."""
+def box_solve(qp: DaqpBox, update):
+    """The box QP's minimiser from an update kernel's (minimiser, inside, linear term): the closed form, or DAQP's
+    (warm-started across the MPC step) when the box is active."""
     x, inside, lin = update
-    return x if inside else box_qp(qp.P, lin, qp.lo, qp.hi)
+    return x if inside else qp.solve(lin)
 
 
 def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
     """planner.admm.admm_solve with the compiled kernels: sweeps until ||F|| <= tol_F, the iterate change <= tol_step
     and the Z-step's b_i linearised within tol_step (m) of its result, or max_iters."""
     dyn = tuple(np.ascontiguousarray(M) for M in prob.dyn)
-    d_qp, a_qp = solvers.delta_qp, solvers.alpha_qp
+    d_qp, a_qp = DaqpBox(solvers.delta_qp), DaqpBox(solvers.alpha_qp)
     Delta, alpha, Z, mu, zstate = st
     F_norm = step = np.inf
     info, k = {}, 0
@@ -80,8 +76,7 @@ def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F,
         new_alpha = box_solve(a_qp, alpha_update(*dyn, a_qp.P_inv, prob.Phi_2.q, prob.rho, a_qp.lo, a_qp.hi, new_Delta, alpha,
                                                  Z, mu))
         new_Z, zstate, info = solvers.zstep(Z, mu, z_residual(*dyn, new_Delta, new_alpha, Z), zstate)
-        mu, F_norm = mu_update(*dyn, prob.rho, new_Delta, new_alpha, new_Z, mu)
-        step = change(Delta, alpha, Z, new_Delta, new_alpha, new_Z)
+        mu, F_norm, step = mu_update(*dyn, prob.rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
         Delta, alpha, Z = new_Delta, new_alpha, new_Z
         if F_norm <= tol_F and step <= tol_step:
             if info.get("lin_offset", 0.0) <= tol_step:

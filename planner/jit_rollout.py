@@ -125,13 +125,13 @@ def compiled_jacobian(source):
 
 
 @njit(cache=True)
-def b_i_affine(ego, ego0, values0, grads, R):
-    """b_i (N*T_p,) in m^2 and d b_i / d Z (N*T_p, 4T_p) at the ego plan `ego` (T_p, 2) with the others' rollout values
+def b_i_affine(Z, ego0, values0, grads, R):
+    """b_i (N*T_p,) in m^2 and d b_i / d Z (N*T_p, 4T_p) at the plan Z (4T_p,) with the others' rollout values
     affine about a linearisation (ego0, values0 (T_p, SLOTS, 2), grads (T_p, SLOTS, 2, T_p, 2)); the ego slot moves
     exactly with Z. As core.rollout.b_i_jacobian of planner.safety.Safety.reused, causal blocks only."""
     T_p, M = values0.shape[0], values0.shape[1]
     N = M - 1
-    d = (ego - ego0).reshape(-1)
+    d = (Z.reshape(T_p, 4)[:, :2] - ego0).reshape(-1)
     values = values0 + (grads.reshape(T_p * M * 2, T_p * 2) @ d).reshape(T_p, M, 2)
     b, Jb = np.empty(N * T_p), np.zeros((N * T_p, 4 * T_p))
     for n in range(N):

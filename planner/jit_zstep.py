@@ -31,7 +31,7 @@ class CompiledSafety(Safety):
         result is kept, since the SQP step linearises an accepted trial plan again."""
         if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
             ego0, values0, grads = self._lin
-            self._last = (Z, self._lin, b_i_affine(np.ascontiguousarray(ego_xy(Z, self.T_p)), ego0, values0, grads, self.R))
+            self._last = (Z, self._lin, b_i_affine(Z, ego0, values0, grads, self.R))
         return self._last[2]
 
     def linearize(self, Z, reuse_radius=0.0):

@@ -92,13 +92,13 @@ def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(sta
     src, st, R = student_source(), states[3], 3.95
     ego0 = ego_xy(st.warm.Z, 8).copy()
     values0, grads = jit_rollout.compiled_jacobian(src)(st.obs.history, ego0)
-    ego = ego0 + 0.3
-    b, Jb = jit_rollout.b_i_affine(ego, ego0, values0, grads, R)
+    ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
+    Z.reshape(8, 4)[:, :2] = ego
+    b, Jb = jit_rollout.b_i_affine(Z, ego0, values0, grads, R)
     affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
     want = b_i_jacobian(affine(ego), grads, R)
     assert np.abs(b - want[0]).max() < 1e-9 and np.abs(Jb - want[1]).max() < 1e-9
-    h, Z = 1e-6, np.tile([0.0, 0.0, 0.1, 5.0], 8)
-    Z.reshape(8, 4)[:, :2] = ego
+    h = 1e-6
     fd = np.stack([(b_i(affine(ego_xy(Z + h * e, 8)), R) - b_i(affine(ego_xy(Z - h * e, 8)), R)).reshape(-1) / (2 * h)
                    for e in np.eye(Z.size)], axis=1)
     assert np.abs(Jb - fd).max() < 1e-5 * max(1.0, np.abs(Jb).max())
