@@ -12,7 +12,7 @@ SOFT_RHO = 1e6  # DAQP's reciprocal quadratic weight on a soft violation s: s^2 
 
 def optimal(x, exitflag):
     """x if DAQP found an optimum (1; 2: with soft constraints violated), else SolverFailure naming its exit flag."""
-    if exitflag < 1 or not np.all(np.isfinite(x)):
+    if exitflag < 1 or not np.isfinite(x @ x):
         raise SolverFailure(f"DAQP exit flag {exitflag}")
     return x
 
