@@ -96,10 +96,13 @@ def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambd
     return False, max(0.5 * radius, min_radius), step
 
 
-class CompiledSQPZStep(SQPZStep):
-    """SQPZStep (same settings, same iterates to the QP solvers' tolerances) with numba kernels and DAQP."""
+class CompiledSQPZStep:
+    """planner.zstep.SQPZStep (same settings, same iterates to the QP solvers' tolerances) with numba kernels and DAQP."""
+
+    name = SQPZStep.name
 
     def __init__(self, prob, safety, osqp_settings, settings):
+        """The Z-step of Problem `prob` with the SQP settings; osqp_settings unused (every Z-step takes them)."""
         self.C, self.rho, self.safety, self.s = np.ascontiguousarray(prob.dyn.C), prob.rho, safety, settings
         self.lo, self.hi = prob.z_lo, prob.z_hi
         self.Phi_3 = prob.Phi_3
