@@ -6,27 +6,31 @@ from numba import njit
 
 from planner.admm import ADMMState, Problem, Solve, Solvers
 from planner.daqp_qp import DaqpBox
+from planner.jit_linalg import matvec, rmatvec
 
 
 @njit(cache=True)
 def F(A, B, C, D, Delta, alpha, Z):
     """Dynamics residual (4T_p,) in state units (m, m, rad, m/s)."""
-    return A @ Delta + B @ alpha + C @ Z + D
+    return matvec(A, Delta) + matvec(B, alpha) + matvec(C, Z) + D
 
 
 @njit(cache=True)
 def box_minimiser(P_inv, q, lo, hi):
     """The unconstrained minimiser -P^-1 q of 1/2 x'Px + q'x and whether it lies in the box [lo, hi]."""
-    x = -(P_inv @ q)
-    return x, np.all(x >= lo) and np.all(x <= hi)
+    x = -matvec(P_inv, q)
+    inside = True
+    for i in range(len(x)):
+        inside = inside and lo[i] <= x[i] <= hi[i]
+    return x, inside
 
 
 @njit(cache=True)
 def delta_update(A, B, C, D, P_inv, q, rho, lo, hi, Delta, alpha, Z, mu):
     """argmin_Delta Phi_1 + mu'A Delta + rho/2 ||A Delta - c_Delta||^2, c_Delta = A Delta^k - F^k, when the box is
     inactive; (minimiser, inside the box, the QP's linear term)."""
-    c_Delta = A @ Delta - F(A, B, C, D, Delta, alpha, Z)
-    lin = q + A.T @ (mu - rho * c_Delta)
+    c_Delta = matvec(A, Delta) - F(A, B, C, D, Delta, alpha, Z)
+    lin = q + rmatvec(A, mu - rho * c_Delta)
     x, inside = box_minimiser(P_inv, lin, lo, hi)
     return x, inside, lin
 
@@ -35,8 +39,8 @@ def delta_update(A, B, C, D, P_inv, q, rho, lo, hi, Delta, alpha, Z, mu):
 def alpha_update(A, B, C, D, P_inv, q, rho, lo, hi, Delta, alpha, Z, mu):
     """argmin_alpha Phi_2 + mu'B alpha + rho/2 ||B alpha - c_alpha||^2, c_alpha = B alpha^k - F(Delta^{k+1}, ...), when
     the box is inactive; (minimiser, inside the box, the QP's linear term)."""
-    c_alpha = B @ alpha - F(A, B, C, D, Delta, alpha, Z)
-    lin = q + B.T @ (mu - rho * c_alpha)
+    c_alpha = matvec(B, alpha) - F(A, B, C, D, Delta, alpha, Z)
+    lin = q + rmatvec(B, mu - rho * c_alpha)
     x, inside = box_minimiser(P_inv, lin, lo, hi)
     return x, inside, lin
 
@@ -44,7 +48,16 @@ def alpha_update(A, B, C, D, P_inv, q, rho, lo, hi, Delta, alpha, Z, mu):
 @njit(cache=True)
 def z_residual(A, B, C, D, Delta, alpha, Z):
     """c_Z = C Z^k - F(Delta^{k+1}, alpha^{k+1}, Z^k), the Z-update's target."""
-    return C @ Z - F(A, B, C, D, Delta, alpha, Z)
+    return matvec(C, Z) - F(A, B, C, D, Delta, alpha, Z)
+
+
+@njit(cache=True)
+def inf_norm(a, b):
+    """max |a - b|."""
+    out = 0.0
+    for i in range(len(a)):
+        out = max(out, abs(a[i] - b[i]))
+    return out
 
 
 @njit(cache=True)
@@ -52,8 +65,8 @@ def mu_update(A, B, C, D, rho, Delta, alpha, Z, mu, old_Delta, old_alpha, old_Z)
     """mu + rho F(Delta, alpha, Z), with the stopping tests' ||F|| (state units) and iterate change (inf-norm over
     Delta, alpha, Z against the sweep's start)."""
     residual = F(A, B, C, D, Delta, alpha, Z)
-    change = max(np.max(np.abs(Delta - old_Delta)), np.max(np.abs(alpha - old_alpha)), np.max(np.abs(Z - old_Z)))
-    return mu + rho * residual, np.sqrt(residual @ residual), change
+    change = max(inf_norm(Delta, old_Delta), inf_norm(alpha, old_alpha), inf_norm(Z, old_Z))
+    return mu + rho * residual, np.sqrt(np.sum(residual * residual)), change
 
 
 def box_solve(qp: DaqpBox, update):

@@ -8,6 +8,7 @@ from numba import njit
 
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
+from planner.jit_linalg import matmul, matvec
 
 
 @njit(cache=True)
@@ -21,19 +22,25 @@ def chain_rule(Js, T_obs):
         first = (T_obs - min(tau, T_obs)) * rows  # rows above hold history: zero derivative
         out[tau, 0, 2 * tau] = out[tau, 1, 2 * tau + 1] = 1.0  # the ego slot is the plan itself
         if first < cols:
-            out[tau, 2:] = np.ascontiguousarray(Js[tau, 2:, first:]) @ dwindow[first:]
-        dwindow[:-rows] = dwindow[rows:].copy()
-        dwindow[-rows:] = out[tau]
+            dnext = matmul(Js[tau, 2:, first:], dwindow[first:])
+            for r in range(rows - 2):
+                for c in range(2 * T_p):
+                    out[tau, r + 2, c] = dnext[r, c]
+        for r in range(cols):  # the window moves on by one step: its rows shift up, the new step enters at the bottom
+            for c in range(2 * T_p):
+                dwindow[r, c] = dwindow[r + rows, c] if r < cols - rows else out[tau, r - cols + rows, c]
     return out.reshape(T_p, rows // 2, 2, T_p, 2)
 
 
 @njit(cache=True)
 def step_window(window, nxt, ego):
     """The next window (T_obs, SLOTS, 2): drop the oldest step, append nxt with the ego slot set to the plan's xy."""
+    T_obs, M, _ = window.shape
     out = np.empty_like(window)
-    out[:-1] = window[1:]
-    out[-1] = nxt
-    out[-1, 0] = ego
+    for t in range(T_obs):
+        for m in range(M):
+            for k in range(2):
+                out[t, m, k] = window[t + 1, m, k] if t < T_obs - 1 else (ego[k] if m == 0 else nxt[m, k])
     return out
 
 
@@ -68,16 +75,31 @@ def student_phi_jac(Ws, bs, s, window):
     h = window.reshape(-1).copy()
     dhs = []
     for k in range(len(Ws) - 1):
-        h, dh = gelu(Ws[k] @ h + bs[k])
+        h, dh = gelu(matvec(Ws[k], h) + bs[k])
         dhs.append(dh)
-    t = np.tanh(Ws[-1] @ h + bs[-1])
+    t = np.tanh(matvec(Ws[-1], h) + bs[-1])
     nxt, J = cv_phi_jac(window)
-    nxt[1:] += (s * t).reshape(M - 1, 2)
-    G = (s * (1.0 - t * t))[:, None] * Ws[-1]  # d head / d last hidden, (2N, width)
+    G = Ws[-1].copy()  # becomes d head / d hidden, layer by layer back to d head / d window: (2N, width)
+    for r in range(len(t)):
+        nxt[1 + r // 2, r % 2] += s[r] * t[r]
+        G[r] *= s[r] * (1.0 - t[r] * t[r])
     for k in range(len(Ws) - 2, -1, -1):
-        G = (G * dhs[k][None, :]) @ Ws[k]
-    J[2:] += G
+        G = (G * dhs[k]) @ Ws[k]  # dhs[k] (width,) scales G's columns; BLAS: the hot product, worth its compile time
+    for r in range(G.shape[0]):
+        for c in range(G.shape[1]):
+            J[r + 2, c] += G[r, c]
     return nxt, J
+
+
+@njit(cache=True)
+def keep(Js, values, tau, J, window):
+    """Store step tau's local Jacobian J and its window's last step (the rollout's values at tau)."""
+    for r in range(J.shape[0]):
+        for c in range(J.shape[1]):
+            Js[tau, r, c] = J[r, c]
+    for m in range(window.shape[1]):
+        for k in range(2):
+            values[tau, m, k] = window[-1, m, k]
 
 
 @njit(cache=True)
@@ -88,9 +110,8 @@ def cv_rollout(history, ego):
     values, Js, window = np.empty((T_p, M, 2)), np.empty((T_p, 2 * M, T_obs * 2 * M)), history
     for tau in range(T_p):
         nxt, J = cv_phi_jac(window)
-        Js[tau] = J
         window = step_window(window, nxt, ego[tau])
-        values[tau] = window[-1]
+        keep(Js, values, tau, J, window)
     return values, chain_rule(Js, T_obs)
 
 
@@ -102,9 +123,8 @@ def student_rollout(Ws, bs, s, history, ego):
     values, Js, window = np.empty((T_p, M, 2)), np.empty((T_p, 2 * M, T_obs * 2 * M)), history
     for tau in range(T_p):
         nxt, J = student_phi_jac(Ws, bs, s, window)
-        Js[tau] = J
         window = step_window(window, nxt, ego[tau])
-        values[tau] = window[-1]
+        keep(Js, values, tau, J, window)
     return values, chain_rule(Js, T_obs)
 
 
@@ -132,7 +152,7 @@ def b_i_affine(Z, ego0, values0, grads, R):
     T_p, M = values0.shape[0], values0.shape[1]
     N = M - 1
     d = (Z.reshape(T_p, 4)[:, :2] - ego0).reshape(-1)
-    values = values0 + (grads.reshape(T_p * M * 2, T_p * 2) @ d).reshape(T_p, M, 2)
+    values = values0 + matvec(grads.reshape(T_p * M * 2, T_p * 2), d).reshape(T_p, M, 2)
     b, Jb = np.empty(N * T_p), np.zeros((N * T_p, 4 * T_p))
     for n in range(N):
         for t in range(T_p):

@@ -8,6 +8,7 @@ from numba import njit
 
 from core.rollout import ego_xy
 from planner.daqp_qp import INF, SoftQP
+from planner.jit_linalg import matvec, rmatvec
 from planner.jit_rollout import b_i_affine, compiled_jacobian
 from planner.safety import Safety
 from planner.zstep import SQPZStep
@@ -46,49 +47,72 @@ class CompiledSafety(Safety):
 @njit(cache=True)
 def offset(Z, ego0):
     """max |ego xy in Z - ego0| (m) over the horizon and x, y; Z (4T_p,), ego0 (T_p, 2)."""
-    return np.max(np.abs(Z.reshape(-1, 4)[:, :2] - ego0))
+    out = 0.0
+    for t in range(len(ego0)):
+        out = max(out, abs(Z[4 * t] - ego0[t, 0]), abs(Z[4 * t + 1] - ego0[t, 1]))
+    return out
+
+
+@njit(cache=True)
+def clip(x, lo, hi):
+    """x clipped to the box [lo, hi]."""
+    out = np.empty_like(x)
+    for i in range(len(x)):
+        out[i] = min(max(x[i], lo[i]), hi[i])
+    return out
 
 
 @njit(cache=True)
 def z_start(q_3, C, rho, mu, c_Z, Z, lo, hi):
     """The Z-update's linear term Phi_3's q + C'(mu - rho c_Z) and Z^k clipped to the state box."""
-    return q_3 + C.T @ (mu - rho * c_Z), np.minimum(np.maximum(Z, lo), hi)
+    return q_3 + rmatvec(C, mu - rho * c_Z), clip(Z, lo, hi)
 
 
 @njit(cache=True)
 def z_trial(x, Jb, c_lo, lo, hi, hard):
     """The QP's solution as a trial Z (clipped to the state box, met by DAQP only to its tolerance) and the largest
     violation of a linearised b_i row (m^2, 0 in penalty form)."""
-    slack = max(np.max(c_lo - Jb @ x), 0.0) if hard else 0.0
-    return np.minimum(np.maximum(x, lo), hi), slack
+    slack = 0.0
+    if hard:
+        rows = matvec(Jb, x)
+        for i in range(len(rows)):
+            slack = max(slack, c_lo[i] - rows[i])
+    return clip(x, lo, hi), slack
 
 
 @njit(cache=True)
 def z_qp(lin_q, Z, b, Jb, radius, lo, hi, xy, hard, lambda_s):
     """The SQP step's QP data at Z: linear term (penalty form: minus lambda_s sum_i d b_i / d Z), the state box cut to
     the trust region on the ego's x, y (m), and the rows' lower bounds Jb Z - b (hard form; -INF: no row bound)."""
-    f = lin_q.copy()
-    if not hard:
-        f -= lambda_s * Jb.sum(axis=0)
-    tr = np.where(xy, radius, np.inf)
-    c_lo = Jb @ Z - b if hard else np.full(len(b), -INF)
-    return f, np.maximum(np.maximum(lo, Z - tr), -INF), np.minimum(np.minimum(hi, Z + tr), INF), c_lo
+    f, q_lo, q_hi = lin_q.copy(), np.empty(len(Z)), np.empty(len(Z))
+    for j in range(len(Z)):
+        if not hard:
+            f[j] -= lambda_s * Jb[:, j].sum()
+        tr = radius if xy[j] else INF
+        q_lo[j], q_hi[j] = max(lo[j], Z[j] - tr, -INF), min(hi[j], Z[j] + tr, INF)
+    c_lo = matvec(Jb, Z) - b if hard else np.full(len(b), -INF)
+    return f, q_lo, q_hi, c_lo
 
 
 @njit(cache=True)
 def merit(H, lin_q, Z, b, hard, slack_penalty, lambda_s):
     """1/2 Z'HZ + lin_q'Z plus the L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
-    value = 0.5 * Z @ (H @ Z) + lin_q @ Z
-    return value + slack_penalty * np.maximum(0.0, -b).sum() if hard else value - lambda_s * b.sum()
+    value = np.sum(Z * (0.5 * matvec(H, Z) + lin_q))
+    safety = 0.0
+    for i in range(len(b)):
+        safety += slack_penalty * max(0.0, -b[i]) if hard else -lambda_s * b[i]
+    return value + safety
 
 
 @njit(cache=True)
 def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambda_s, max_radius, min_radius):
     """Trust-region test of a step Z -> Z_new: (accepted, next radius (m), step size (inf-norm, m)), as SQPZStep."""
     here = merit(H, lin_q, Z, b, hard, slack_penalty, lambda_s)
-    predicted = here - merit(H, lin_q, Z_new, b + Jb @ (Z_new - Z), hard, slack_penalty, lambda_s)
+    predicted = here - merit(H, lin_q, Z_new, b + matvec(Jb, Z_new - Z), hard, slack_penalty, lambda_s)
     actual = here - merit(H, lin_q, Z_new, b_new, hard, slack_penalty, lambda_s)
-    step = np.max(np.abs(Z_new - Z))
+    step = 0.0
+    for i in range(len(Z)):
+        step = max(step, abs(Z_new[i] - Z[i]))
     if actual >= 0.1 * predicted or predicted <= 1e-12:
         if actual >= 0.75 * predicted and step >= 0.99 * radius:
             radius = min(2.0 * radius, max_radius)
