@@ -8,6 +8,7 @@ from numba import njit
 
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
+from planner.gradients import ExactLocal
 from planner.jit_linalg import matmul, matvec
 
 
@@ -131,7 +132,7 @@ def student_rollout(Ws, bs, s, history, ego):
 def compiled_jacobian(source):
     """jacobian(history, ego) -> (values, d values / d ego) compiled for a source that differentiates its predictor's
     own exact local Jacobians (cv, student); None for the others, whose own `jacobian` the compiled core calls."""
-    if getattr(source, "name", "") not in ("cv", "student") or type(source).__name__ != "ExactLocal":
+    if not isinstance(source, ExactLocal):
         return None
     if isinstance(source.predictor, ConstantVelocity):
         return lambda history, ego: cv_rollout(np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
