@@ -135,6 +135,10 @@ class CompiledSQPZStep:
         self.hard = settings.mode == "hard"
         self.qp = SoftQP(self.H, settings.slack_penalty, self.hard, (safety.history.shape[1] - 1) * (len(self.lo) // 4))
 
+    def merit(self, Z, lin_q, b):
+        """Quadratic part plus the safety term at Z with b_i = b (see SQPZStep.merit)."""
+        return merit(self.H, lin_q, Z, b, self.hard, self.s.slack_penalty, self.s.lambda_s)
+
     def __call__(self, Z, mu, c_Z, zstate=None):
         """Z_{k+1} from Z_k as SQPZStep.__call__; info: SQP iterations, max slack (m^2), infeasible, min b_i, lin_offset."""
         s = self.s
