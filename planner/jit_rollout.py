@@ -6,9 +6,10 @@ import math
 import numpy as np
 from numba import njit
 
+from core.rollout import rollout_jacobian
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner.gradients import ExactLocal
+from planner.gradients import ExactLocal, Surrogate
 from planner.jit_linalg import matmul, matvec
 
 
@@ -143,6 +144,19 @@ def compiled_jacobian(source):
         return lambda history, ego: student_rollout(Ws, bs, s, np.ascontiguousarray(history, float),
                                                     np.ascontiguousarray(ego, float))
     return None
+
+
+def compiled_chain(source):
+    """jacobian(history, ego) for a source whose local Jacobians come from Python (another ExactLocal predictor, a fused
+    surrogate export): its windows' values and Jacobians as the source has them, composed by the compiled chain_rule;
+    None for the others (autodiff, differences: their own `jacobian`)."""
+    if isinstance(source, ExactLocal):
+        phi_jac = source.predictor.phi_jac
+    elif isinstance(source, Surrogate) and source.surrogate.fused:
+        phi_jac = source.surrogate.phi_jac
+    else:
+        return None
+    return lambda history, ego: rollout_jacobian(phi_jac, history, ego, chain=chain_rule)
 
 
 @njit(cache=True)

@@ -9,18 +9,19 @@ from numba import njit
 from core.rollout import ego_xy
 from planner.daqp_qp import INF, SoftQP
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_rollout import b_i_affine, compiled_jacobian
+from planner.jit_rollout import b_i_affine, compiled_chain, compiled_jacobian
 from planner.safety import Safety
 from planner.zstep import SQPZStep
 
 
 class CompiledSafety(Safety):
-    """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts."""
+    """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts (other
+    Python-side local Jacobians composed by the compiled chain rule)."""
 
     def __init__(self, source, history, R, T_p):
         super().__init__(source, history, R, T_p)
         self.history = np.ascontiguousarray(self.history)
-        self.jacobian = compiled_jacobian(source) or source.jacobian
+        self.jacobian = compiled_jacobian(source) or compiled_chain(source) or source.jacobian
         self._last = None  # (Z, the linearisation, (b_i, d b_i / d Z)) of the last `reused`
 
     def offset(self, Z):
