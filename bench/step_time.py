@@ -1,11 +1,14 @@
 """`make bench`: wall time (ms) of one ADMM-NNMPC step per gradient source on the saved planning states, single-threaded,
 beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls) and the full-NLP baseline
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
-(cv, analytic, student), with ADMM's speed-up over it and the cost gap; logged to MLflow (`bench`).
+(cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
+(`<source>-ref`: mpc.core=reference, numpy and OSQP) and at a longer horizon (`<source>-T16`); then a profile of where
+a step's time goes (compiled kernels, DAQP solves, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
-Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair. The cost gap
+Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair (the -ref
+and -T16 rows are timed after them, source by source). The cost gap
 is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
 own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out below IPOPT's).
 """
@@ -15,6 +18,7 @@ import pstats
 import re
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import hydra
 import numpy as np
@@ -130,17 +134,67 @@ def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> 
     return {name: (np.array(ms[name]), float(np.mean(iters[name])), falls[name], np.array(J[name])) for name in ms}
 
 
+def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix: str) -> dict:
+    """time_steps' entries {<name><suffix>: ...} for the sources `names` with the planner overrides `overrides` (after
+    one warm-up step each: a new set-up pays on its first call)."""
+    s_of = lambda scenario: settings(scenario, overrides)
+    out = {}
+    for name in names:
+        solver_step()(s_of(states[0].scenario), states[0].obs, srcs[name], states[0].warm)
+        ms, iters, falls, J = [], [], 0, []
+        for state in states:
+            best = np.inf
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                result = solver_step()(s_of(state.scenario), state.obs, srcs[name], state.warm)
+                best = min(best, 1e3 * (time.perf_counter() - t0))
+            ms.append(best)
+            iters.append(result.iters)
+            falls += bool(result.fallback)
+            J.append(np.nan if result.fallback else result.J)
+        out[f"{name}{suffix}"] = (np.array(ms), float(np.mean(iters)), falls, np.array(J))
+    return out
+
+
+def variants(cfg: DictConfig, srcs: dict, states) -> dict:
+    """The sources of cfg.step_time.reference with mpc.core=reference (`<name>-ref`) and those of
+    cfg.step_time.horizon at its T_p (`<name>-T<T_p>`, on states collected at that horizon beside cfg.states.path)."""
+    st, h = cfg.step_time, cfg.step_time.horizon
+    out = steps_with(srcs, [n for n in st.reference if n in srcs], states, ("mpc.core=reference",), st.repeats, "-ref")
+    names = [n for n in h.sources if n in srcs]
+    if names:
+        overrides, path = (f"paper.T_p={h.T_p}",), Path(cfg.states.path)
+        long = planning_states(path.with_name(f"{path.stem}_T{h.T_p}{path.suffix}"), per_scenario=cfg.states.per_scenario,
+                               gradients=cfg.states.gradients, seed=cfg.states.seed, overrides=overrides)
+        out.update(steps_with(srcs, names, long, overrides, st.repeats, f"-T{h.T_p}"))
+    return out
+
+
 def cost_gap(J_admm, J_ipopt) -> np.ndarray:
     """(J_ADMM - J_IPOPT) / |J_IPOPT| on the states where both planned (no fallback) and J_IPOPT >= GAP_FLOOR."""
     ok = np.isfinite(J_admm) & np.isfinite(J_ipopt) & (np.abs(J_ipopt) >= GAP_FLOOR)
     return (J_admm[ok] - J_ipopt[ok]) / np.abs(J_ipopt[ok])
 
 
-def part(key) -> str:
-    """The part of an MPC step a profiled function belongs to: its library, or its file in this repository."""
+def kernels() -> set:
+    """The profile keys (file, line, name) of the compiled core's numba kernels (cProfile sees a dispatcher call as its
+    Python function's)."""
+    from planner import jit_admm, jit_rollout, jit_zstep
+
+    funcs = [f.py_func for m in (jit_admm, jit_rollout, jit_zstep) for f in vars(m).values() if hasattr(f, "py_func")]
+    return {(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
+
+
+def part(key, compiled=frozenset()) -> str:
+    """The part of an MPC step a profiled function belongs to: the compiled kernels (keys in `compiled`), its library,
+    or its file in this repository (Python)."""
     file, _, name = key
+    if key in compiled:
+        return "compiled kernels (numba)"
+    if file.endswith("planner/daqp_qp.py"):  # DAQP's Cython calls are invisible to cProfile: their time is their caller's
+        return "DAQP solves (in planner/daqp_qp.py)"
     if file == "~":  # a C function: name it by the extension it belongs to
-        return next((lib for lib in ("onnxruntime", "osqp", "torch") if lib in name), "numpy / builtins")
+        return next((lib for lib in ("onnxruntime", "osqp", "daqp", "torch") if lib in name), "numpy / builtins")
     if "site-packages/" in file:
         return file.split("site-packages/")[1].split("/")[0]
     tail = file.split("/")
@@ -148,19 +202,21 @@ def part(key) -> str:
 
 
 def profile(step, src, s_of, states) -> tuple[dict, dict]:
-    """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP solves: per
-    step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
+    """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP and DAQP
+    solves: per step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
     prof = cProfile.Profile()
     for state in states:
         prof.runcall(step, s_of(state.scenario), state.obs, src, state.warm)
     stats = pstats.Stats(prof).stats  # {(file, line, name): (primitive calls, calls, own s, cumulative s, callers)}
-    ms, calls = defaultdict(float), defaultdict(float)
+    ms, calls, compiled = defaultdict(float), defaultdict(float), kernels()
     for key, (_, n, own, _, _) in stats.items():
-        ms[part(key)] += 1e3 * own / len(states)
+        ms[part(key, compiled)] += 1e3 * own / len(states)
         if key[2] == "run" and "onnxruntime" in key[0]:  # InferenceSession.run, once per call (its C parts are not)
             calls["onnxruntime calls"] += n / len(states)
         if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
             calls["OSQP solves"] += n / len(states)
+        if key[0].endswith("planner/daqp_qp.py") and key[2] in ("solve", "box_qp"):
+            calls["DAQP solves"] += n / len(states)
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 
@@ -203,7 +259,8 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
              f"fastest of {st.repeats}",
              f"{'source':>14} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
-        pred = srcs[name.removeprefix("ipopt-")].predictor.name if name.removeprefix("ipopt-") in srcs else "frozen"
+        base = re.sub(r"-(ref|T\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref and -T<T_p> rows
+        pred = srcs[base].predictor.name if base in srcs else "frozen"
         lines.append(f"{name:>14} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
     for a, b in st.ratios:
@@ -243,6 +300,7 @@ def run(cfg: DictConfig) -> dict:
                 st = next(st for st in states if st.scenario == scenario)
                 step(settings(scenario), st.obs, src, st.warm)
         timings = time_steps(srcs, states, cfg.step_time.repeats, others)
+        timings.update(variants(cfg, srcs, states))
         profiles = {name: profile(solver_step(), srcs[name], settings, states) for name in cfg.step_time.profile
                     if name in srcs}
     metrics = summary(timings, cfg.step_time)

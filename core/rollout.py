@@ -52,11 +52,12 @@ def chain_rule(J):
     return out.unflatten(-1, (t_p, 2)).unflatten(-3, (rows // 2, 2))  # a traced reshape would fix the batch size
 
 
-def rollout_jacobian(phi_jac, history, ego_future):
+def rollout_jacobian(phi_jac, history, ego_future, chain=None):
     """Rollout values (T_p, SLOTS, 2) and their derivative w.r.t. the ego plan (T_p, SLOTS, 2, T_p, 2), for one planning state.
 
     phi_jac(window (1, T_obs, SLOTS, 2)) -> (next (1, SLOTS, 2), J (1, SLOTS*2, T_obs*SLOTS*2)) supplies the local values and
-    Jacobians (autodiff, analytic, a surrogate, or differences); composed by chain_rule.
+    Jacobians (autodiff, analytic, a surrogate, or differences); composed by chain_rule, or by chain(Js, T_obs) (the
+    compiled planner core's).
     """
     history = np.asarray(history, dtype=float)
     ego_future = np.asarray(ego_future, dtype=float)
@@ -69,7 +70,7 @@ def rollout_jacobian(phi_jac, history, ego_future):
         values.append(nxt)
         Js.append(np.asarray(J, dtype=float).reshape(m * 2, t_obs * m * 2))
         window = np.concatenate([window[1:], nxt[None]], axis=0)
-    return np.stack(values), chain_rule(np.stack(Js))
+    return np.stack(values), chain_rule(np.stack(Js)) if chain is None else chain(np.stack(Js), t_obs)
 
 
 def ego_xy(Z, T_p):

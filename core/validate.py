@@ -309,7 +309,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "mpc.osqp.adaptive_rho_interval": Int(0, optional=True),
     "zstep.settings.reuse_radius": Real(0, optional=True),
     "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
-    "mpc.check_relative": Bool(),
+    "mpc.check_relative": Bool(), "mpc.core": OneOf(("compiled", "reference")),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (
         "trust_radius", "min_radius", "max_radius", "tol", "slack_penalty", "slack_tol", "opt_tol", "viol_ineq_tol", "mu0",
@@ -350,6 +350,8 @@ BENCH = {
     "models_dir": Text(), "threads": Int(1), "states.path": Text(), "states.per_scenario": Int(1),
     "states.gradients": GRADIENT_OPTIONS, "states.seed": SEED, "step_time.repeats": Int(1),
     "step_time.profile": ListOf(GRADIENT_OPTIONS), "zstep_compare.per_scenario": Int(0),
+    "step_time.horizon.T_p": Int(1), "step_time.horizon.sources": ListOf(GRADIENT_OPTIONS),
+    "step_time.reference": ListOf(GRADIENT_OPTIONS),
     "zstep_compare.sources": ListOf(GRADIENT_OPTIONS), "step_time.ipopt": ListOf(GRADIENT_OPTIONS),
     "step_time.ratios": ListOf(ListOf(OneOf((*GRADIENT_OPTIONS.choices, "floor")), 2)),
 }

@@ -12,7 +12,8 @@ from core.jobs import UserError
 from core.rollout import b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
-from planner import admm, cost, dynamics
+from planner import admm, cost, dynamics, jit_admm, jit_rollout, jit_zstep
+from planner.jit_zstep import CompiledSafety
 from planner.qp import SolverFailure
 from planner.safety import Safety
 
@@ -39,6 +40,7 @@ class Settings:
     v_box: tuple  # m/s
     y_margin: float  # how far the ego's centre may leave the outer lane centres (m)
     linearize: str  # last_observed | along_plan
+    core: str  # compiled (numba kernels, DAQP) | reference (numpy, OSQP)
     admm: admm.ADMMSettings  # planner.admm.admm_solve's max_iters, tol_F, tol_step
     osqp: dict  # OSQP settings of every sub-problem
     check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
@@ -129,7 +131,11 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
     start, dyn = start_point(s, obs, warm)
     lo, hi = state_box(s)
     prob = admm.Problem(dyn, *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box), tuple(s.a_box), lo, hi)
-    solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
+    if s.core == "compiled":
+        safety = CompiledSafety(source, obs.history, s.R, s.T_p)
+        solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp)
+    else:
+        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
     return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
 
 
@@ -146,7 +152,9 @@ def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
     """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
     Z = simulate(obs.z0, Delta, alpha, s.params)
-    values = source.values(obs.history, ego_xy(Z, s.T_p)[None])[0]
+    ego = ego_xy(Z, s.T_p)
+    compiled = jit_rollout.compiled_jacobian(source) if s.core == "compiled" else None  # cv, student: values and J in ~0.1 ms
+    values = compiled(obs.history, ego)[0] if compiled else source.values(obs.history, ego[None])[0]
     return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf)), Z
 
 
@@ -194,7 +202,7 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         return fallback(s, obs, source, warm, "non-finite observation")
     try:
         prob, solvers, start = build(s, obs, source, warm, zstep)
-        st, solve = admm.admm_solve(prob, solvers, start, *s.admm)
+        st, solve = (jit_admm if s.core == "compiled" else admm).admm_solve(prob, solvers, start, *s.admm)
     except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
         return fallback(s, obs, source, warm, f"solver failure ({e})")
     except UserError:  # the user's to fix (a missing optional solver): one line, not a fallback every step

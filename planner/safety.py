@@ -10,6 +10,7 @@ class Safety:
 
     def __init__(self, source, history, R, T_p):
         self.source, self.history, self.R, self.T_p = source, np.asarray(history, dtype=float), R, T_p
+        self.jacobian = source.jacobian  # (history, ego xy) -> (values, d values / d ego xy)
         self._lin = None  # (ego xy (T_p, 2), values (T_p, SLOTS, 2), d values / d ego xy (T_p, SLOTS, 2, T_p, 2))
 
     def ego_xy(self, Z):
@@ -44,5 +45,5 @@ class Safety:
         reuse_radius (m) of it (0: only at the same plan), else a new one from the gradient source."""
         if self.offset(Z) > reuse_radius:
             ego = self.ego_xy(Z).copy()
-            self._lin = (ego, *self.source.jacobian(self.history, ego))
+            self._lin = (ego, *self.jacobian(self.history, ego))
         return self.reused(Z)

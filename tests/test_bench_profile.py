@@ -18,17 +18,20 @@ def test_profile_counts_osqp_solves_and_splits_the_step(monkeypatch):
     z = scenario.make_world(0).z
     z[0, 1], z[0, 2] = 1.6, 0.15  # nudged towards the platoon, so the safety constraints are active
     states = [PlanningState("two_lane", mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), None)]
-    solver_step()(settings("two_lane"), states[0].obs, source, None)  # first-call costs (imports, set-ups) stay out
+    reference = lambda scenario: settings(scenario, ("mpc.core=reference",))  # the numpy and OSQP core
+    solver_step()(reference("two_lane"), states[0].obs, source, None)  # first-call costs (imports, set-ups) stay out
     counted = []
     solve = qp.QP.solve
     monkeypatch.setattr(qp.QP, "solve", lambda self, *a, **k: counted.append(1) or solve(self, *a, **k))
     t0 = time.perf_counter()
-    ms, calls = step_time.profile(solver_step(), source, settings, states)
+    ms, calls = step_time.profile(solver_step(), source, reference, states)
     wall_ms = 1e3 * (time.perf_counter() - t0)
     assert len(counted) > 0 and calls["OSQP solves"] == len(counted)
     assert "onnxruntime calls" not in calls
     assert 0.3 * wall_ms < sum(ms.values()) <= wall_ms
     assert any(k.startswith("planner/") for k in ms)
+    ms, calls = step_time.profile(solver_step(), source, settings, states)  # the compiled core: numba and DAQP
+    assert calls["DAQP solves"] > 0 and "OSQP solves" not in calls and ms["compiled kernels (numba)"] > 0
     keys = [step_time.profile_key("analytic", k) for k in [*ms, *calls, "<frozen importlib._bootstrap>"]]
     assert all(re.fullmatch(r"profile_analytic_[A-Za-z0-9_.-]+", k) for k in keys)  # names MLflow accepts
 

@@ -1,0 +1,181 @@
+"""Compiled (numba) Remark-2 rollout with its exact chain rule for the predictors the compiled core runs itself (constant
+velocity and the GELU student from its float64 weights), and b_i with its Jacobian about a linearisation; the layouts of
+core.rollout (metres throughout), which stays the tested reference."""
+import math
+
+import numpy as np
+from numba import njit
+
+from core.rollout import rollout_jacobian
+from distill.models import StudentPredictor
+from distill.predictors import ConstantVelocity
+from planner.gradients import ExactLocal, Surrogate
+from planner.jit_linalg import matmul, matvec
+
+
+@njit(cache=True)
+def chain_rule(Js, T_obs):
+    """d values / d ego plan (T_p, SLOTS, 2, T_p, 2) from the local Jacobians Js (T_p, SLOTS*2, T_obs*SLOTS*2) of the
+    windows a rollout visits; as core.rollout.chain_rule, skipping the window rows no plan step has reached yet."""
+    T_p, rows, cols = Js.shape
+    dwindow = np.zeros((cols, 2 * T_p))
+    out = np.zeros((T_p, rows, 2 * T_p))
+    for tau in range(T_p):
+        first = (T_obs - min(tau, T_obs)) * rows  # rows above hold history: zero derivative
+        out[tau, 0, 2 * tau] = out[tau, 1, 2 * tau + 1] = 1.0  # the ego slot is the plan itself
+        if first < cols:
+            dnext = matmul(Js[tau, 2:, first:], dwindow[first:])
+            for r in range(rows - 2):
+                for c in range(2 * T_p):
+                    out[tau, r + 2, c] = dnext[r, c]
+        for r in range(cols):  # the window moves on by one step: its rows shift up, the new step enters at the bottom
+            for c in range(2 * T_p):
+                dwindow[r, c] = dwindow[r + rows, c] if r < cols - rows else out[tau, r - cols + rows, c]
+    return out.reshape(T_p, rows // 2, 2, T_p, 2)
+
+
+@njit(cache=True)
+def step_window(window, nxt, ego):
+    """The next window (T_obs, SLOTS, 2): drop the oldest step, append nxt with the ego slot set to the plan's xy."""
+    T_obs, M, _ = window.shape
+    out = np.empty_like(window)
+    for t in range(T_obs):
+        for m in range(M):
+            for k in range(2):
+                out[t, m, k] = window[t + 1, m, k] if t < T_obs - 1 else (ego[k] if m == 0 else nxt[m, k])
+    return out
+
+
+@njit(cache=True)
+def cv_phi_jac(window):
+    """Constant velocity: next xy (SLOTS, 2) and its local Jacobian (SLOTS*2, T_obs*SLOTS*2)."""
+    T_obs, M, _ = window.shape
+    J = np.zeros((2 * M, T_obs * 2 * M))
+    for r in range(2 * M):
+        J[r, (T_obs - 1) * 2 * M + r] = 2.0
+        J[r, (T_obs - 2) * 2 * M + r] = -1.0
+    return 2.0 * window[-1] - window[-2], J
+
+
+@njit(cache=True)
+def gelu(a):
+    """Exact (erf) GELU and its derivative, elementwise."""
+    h, dh = np.empty_like(a), np.empty_like(a)
+    for i in range(len(a)):
+        cdf = 0.5 * (1.0 + math.erf(a[i] / math.sqrt(2.0)))
+        h[i] = a[i] * cdf
+        dh[i] = cdf + a[i] * math.exp(-0.5 * a[i] * a[i]) / math.sqrt(2.0 * math.pi)
+    return h, dh
+
+
+@njit(cache=True)
+def student_phi_jac(Ws, bs, s, window):
+    """The GELU student (distill.student) from its float64 weights (tuples of the layers' W and b, P folded into the
+    first W): next xy (SLOTS, 2) and its exact local Jacobian (SLOTS*2, T_obs*SLOTS*2), the others' rows by one
+    reverse sweep for all 2N outputs."""
+    T_obs, M, _ = window.shape
+    h = window.reshape(-1).copy()
+    dhs = []
+    for k in range(len(Ws) - 1):
+        h, dh = gelu(matvec(Ws[k], h) + bs[k])
+        dhs.append(dh)
+    t = np.tanh(matvec(Ws[-1], h) + bs[-1])
+    nxt, J = cv_phi_jac(window)
+    G = Ws[-1].copy()  # becomes d head / d hidden, layer by layer back to d head / d window: (2N, width)
+    for r in range(len(t)):
+        nxt[1 + r // 2, r % 2] += s[r] * t[r]
+        G[r] *= s[r] * (1.0 - t[r] * t[r])
+    for k in range(len(Ws) - 2, -1, -1):
+        G = (G * dhs[k]) @ Ws[k]  # dhs[k] (width,) scales G's columns; BLAS: the hot product, worth its compile time
+    for r in range(G.shape[0]):
+        for c in range(G.shape[1]):
+            J[r + 2, c] += G[r, c]
+    return nxt, J
+
+
+@njit(cache=True)
+def keep(Js, values, tau, J, window):
+    """Store step tau's local Jacobian J and its window's last step (the rollout's values at tau)."""
+    for r in range(J.shape[0]):
+        for c in range(J.shape[1]):
+            Js[tau, r, c] = J[r, c]
+    for m in range(window.shape[1]):
+        for k in range(2):
+            values[tau, m, k] = window[-1, m, k]
+
+
+@njit(cache=True)
+def cv_rollout(history, ego):
+    """Constant-velocity rollout values (T_p, SLOTS, 2) and d values / d ego plan (T_p, SLOTS, 2, T_p, 2)."""
+    T_p = len(ego)
+    T_obs, M, _ = history.shape
+    values, Js, window = np.empty((T_p, M, 2)), np.empty((T_p, 2 * M, T_obs * 2 * M)), history
+    for tau in range(T_p):
+        nxt, J = cv_phi_jac(window)
+        window = step_window(window, nxt, ego[tau])
+        keep(Js, values, tau, J, window)
+    return values, chain_rule(Js, T_obs)
+
+
+@njit(cache=True)
+def student_rollout(Ws, bs, s, history, ego):
+    """The student's rollout values (T_p, SLOTS, 2) and d values / d ego plan (T_p, SLOTS, 2, T_p, 2)."""
+    T_p = len(ego)
+    T_obs, M, _ = history.shape
+    values, Js, window = np.empty((T_p, M, 2)), np.empty((T_p, 2 * M, T_obs * 2 * M)), history
+    for tau in range(T_p):
+        nxt, J = student_phi_jac(Ws, bs, s, window)
+        window = step_window(window, nxt, ego[tau])
+        keep(Js, values, tau, J, window)
+    return values, chain_rule(Js, T_obs)
+
+
+def compiled_jacobian(source):
+    """jacobian(history, ego) -> (values, d values / d ego) compiled for a source that differentiates its predictor's
+    own exact local Jacobians (cv, student); None for the others, whose own `jacobian` the compiled core calls."""
+    if not isinstance(source, ExactLocal):
+        return None
+    if isinstance(source.predictor, ConstantVelocity):
+        return lambda history, ego: cv_rollout(np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
+    if isinstance(source.predictor, StudentPredictor):
+        Ws = tuple(np.ascontiguousarray(W) for W, _ in source.predictor.weights)
+        bs = tuple(np.ascontiguousarray(b) for _, b in source.predictor.weights)
+        s = np.ascontiguousarray(source.predictor.s)
+        return lambda history, ego: student_rollout(Ws, bs, s, np.ascontiguousarray(history, float),
+                                                    np.ascontiguousarray(ego, float))
+    return None
+
+
+def compiled_chain(source):
+    """jacobian(history, ego) for a source whose local Jacobians come from Python (another ExactLocal predictor, a fused
+    surrogate export): its windows' values and Jacobians as the source has them, composed by the compiled chain_rule;
+    None for the others (autodiff, differences: their own `jacobian`)."""
+    if isinstance(source, ExactLocal):
+        phi_jac = source.predictor.phi_jac
+    elif isinstance(source, Surrogate) and source.surrogate.fused:
+        phi_jac = source.surrogate.phi_jac
+    else:
+        return None
+    return lambda history, ego: rollout_jacobian(phi_jac, history, ego, chain=chain_rule)
+
+
+@njit(cache=True)
+def b_i_affine(Z, ego0, values0, grads, R):
+    """b_i (N*T_p,) in m^2 and d b_i / d Z (N*T_p, 4T_p) at the plan Z (4T_p,) with the others' rollout values
+    affine about a linearisation (ego0, values0 (T_p, SLOTS, 2), grads (T_p, SLOTS, 2, T_p, 2)); the ego slot moves
+    exactly with Z. As core.rollout.b_i_jacobian of planner.safety.Safety.reused, causal blocks only."""
+    T_p, M = values0.shape[0], values0.shape[1]
+    N = M - 1
+    d = (Z.reshape(T_p, 4)[:, :2] - ego0).reshape(-1)
+    values = values0 + matvec(grads.reshape(T_p * M * 2, T_p * 2), d).reshape(T_p, M, 2)
+    b, Jb = np.empty(N * T_p), np.zeros((N * T_p, 4 * T_p))
+    for n in range(N):
+        for t in range(T_p):
+            row = n * T_p + t
+            g0, g1 = values[t, 0, 0] - values[t, n + 1, 0], values[t, 0, 1] - values[t, n + 1, 1]
+            b[row] = g0 * g0 + g1 * g1 - R * R
+            for s_ in range(t + 1):  # a rollout is causal: step t's values never depend on later plan steps
+                for e in range(2):
+                    Jb[row, 4 * s_ + e] = 2.0 * (g0 * (grads[t, 0, 0, s_, e] - grads[t, n + 1, 0, s_, e])
+                                                 + g1 * (grads[t, 0, 1, s_, e] - grads[t, n + 1, 1, s_, e]))
+    return b, Jb

@@ -1,0 +1,170 @@
+"""The compiled core's Z-step (mpc.core=compiled): planner.zstep's trust-region SQP with its arithmetic in numba kernels,
+b_i from the compiled rollouts (planner.jit_rollout) and each QP solved by DAQP with the linearised b_i >= 0 as soft
+rows priced by the L1 slack penalty (planner.daqp_qp), so the slack needs no variables of its own."""
+from functools import partial
+
+import numpy as np
+from numba import njit
+
+from core.rollout import ego_xy
+from planner.daqp_qp import INF, SoftQP
+from planner.jit_linalg import matvec, rmatvec
+from planner.jit_rollout import b_i_affine, compiled_chain, compiled_jacobian
+from planner.safety import Safety
+from planner.zstep import SQPZStep
+
+
+class CompiledSafety(Safety):
+    """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts (other
+    Python-side local Jacobians composed by the compiled chain rule)."""
+
+    def __init__(self, source, history, R, T_p):
+        super().__init__(source, history, R, T_p)
+        self.history = np.ascontiguousarray(self.history)
+        self.jacobian = compiled_jacobian(source) or compiled_chain(source) or source.jacobian
+        self._last = None  # (Z, the linearisation, (b_i, d b_i / d Z)) of the last `reused`
+
+    def offset(self, Z):
+        """How far (m, largest over the horizon and x, y) the ego's planned xy in Z lie from the last linearisation's."""
+        return np.inf if self._lin is None else offset(Z, self._lin[0])
+
+    def reused(self, Z):
+        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) about the last linearisation (see Safety.reused); the last
+        result is kept, since the SQP step linearises an accepted trial plan again."""
+        if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
+            ego0, values0, grads = self._lin
+            self._last = (Z, self._lin, b_i_affine(Z, ego0, values0, grads, self.R))
+        return self._last[2]
+
+    def linearize(self, Z, reuse_radius=0.0):
+        """As Safety.linearize, with the new linearisation's derivative stored contiguous for the kernels."""
+        if self.offset(Z) > reuse_radius:
+            ego = np.ascontiguousarray(ego_xy(Z, self.T_p))
+            values, grads = self.jacobian(self.history, ego)
+            self._lin = (ego, np.ascontiguousarray(values), np.ascontiguousarray(grads))
+        return self.reused(Z)
+
+
+@njit(cache=True)
+def offset(Z, ego0):
+    """max |ego xy in Z - ego0| (m) over the horizon and x, y; Z (4T_p,), ego0 (T_p, 2)."""
+    out = 0.0
+    for t in range(len(ego0)):
+        out = max(out, abs(Z[4 * t] - ego0[t, 0]), abs(Z[4 * t + 1] - ego0[t, 1]))
+    return out
+
+
+@njit(cache=True)
+def clip(x, lo, hi):
+    """x clipped to the box [lo, hi]."""
+    out = np.empty_like(x)
+    for i in range(len(x)):
+        out[i] = min(max(x[i], lo[i]), hi[i])
+    return out
+
+
+@njit(cache=True)
+def z_start(q_3, C, rho, mu, c_Z, Z, lo, hi):
+    """The Z-update's linear term Phi_3's q + C'(mu - rho c_Z) and Z^k clipped to the state box."""
+    return q_3 + rmatvec(C, mu - rho * c_Z), clip(Z, lo, hi)
+
+
+@njit(cache=True)
+def z_trial(x, Jb, c_lo, lo, hi, hard):
+    """The QP's solution as a trial Z (clipped to the state box, met by DAQP only to its tolerance) and the largest
+    violation of a linearised b_i row (m^2, 0 in penalty form)."""
+    slack = 0.0
+    if hard:
+        rows = matvec(Jb, x)
+        for i in range(len(rows)):
+            slack = max(slack, c_lo[i] - rows[i])
+    return clip(x, lo, hi), slack
+
+
+@njit(cache=True)
+def z_qp(lin_q, Z, b, Jb, radius, lo, hi, xy, hard, lambda_s):
+    """The SQP step's QP data at Z: linear term (penalty form: minus lambda_s sum_i d b_i / d Z), the state box cut to
+    the trust region on the ego's x, y (m), and the rows' lower bounds Jb Z - b (hard form; -INF: no row bound)."""
+    f, q_lo, q_hi = lin_q.copy(), np.empty(len(Z)), np.empty(len(Z))
+    for j in range(len(Z)):
+        if not hard:
+            f[j] -= lambda_s * Jb[:, j].sum()
+        tr = radius if xy[j] else INF
+        q_lo[j], q_hi[j] = max(lo[j], Z[j] - tr, -INF), min(hi[j], Z[j] + tr, INF)
+    c_lo = matvec(Jb, Z) - b if hard else np.full(len(b), -INF)
+    return f, q_lo, q_hi, c_lo
+
+
+@njit(cache=True)
+def merit(H, lin_q, Z, b, hard, slack_penalty, lambda_s):
+    """1/2 Z'HZ + lin_q'Z plus the L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
+    value = np.sum(Z * (0.5 * matvec(H, Z) + lin_q))
+    safety = 0.0
+    for i in range(len(b)):
+        safety += slack_penalty * max(0.0, -b[i]) if hard else -lambda_s * b[i]
+    return value + safety
+
+
+@njit(cache=True)
+def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambda_s, max_radius, min_radius):
+    """Trust-region test of a step Z -> Z_new: (accepted, next radius (m), step size (inf-norm, m)), as SQPZStep."""
+    here = merit(H, lin_q, Z, b, hard, slack_penalty, lambda_s)
+    predicted = here - merit(H, lin_q, Z_new, b + matvec(Jb, Z_new - Z), hard, slack_penalty, lambda_s)
+    actual = here - merit(H, lin_q, Z_new, b_new, hard, slack_penalty, lambda_s)
+    step = 0.0
+    for i in range(len(Z)):
+        step = max(step, abs(Z_new[i] - Z[i]))
+    if actual >= 0.1 * predicted or predicted <= 1e-12:
+        if actual >= 0.75 * predicted and step >= 0.99 * radius:
+            radius = min(2.0 * radius, max_radius)
+        return True, radius, step
+    return False, max(0.5 * radius, min_radius), step
+
+
+class CompiledSQPZStep:
+    """planner.zstep.SQPZStep (same settings, same iterates to the QP solvers' tolerances) with numba kernels and DAQP."""
+
+    name = SQPZStep.name
+
+    def __init__(self, prob, safety, osqp_settings, settings):
+        """The Z-step of Problem `prob` with the SQP settings; osqp_settings unused (every Z-step takes them)."""
+        self.C, self.rho, self.safety, self.s = np.ascontiguousarray(prob.dyn.C), prob.rho, safety, settings
+        self.lo, self.hi = prob.z_lo, prob.z_hi
+        self.Phi_3 = prob.Phi_3
+        self.H = np.ascontiguousarray(prob.Phi_3.P + prob.rho * (prob.dyn.C.T @ prob.dyn.C))
+        self.xy = np.tile([True, True, False, False], len(self.lo) // 4)
+        self.hard = settings.mode == "hard"
+        self.qp = SoftQP(self.H, settings.slack_penalty, self.hard, (safety.history.shape[1] - 1) * (len(self.lo) // 4))
+
+    def merit(self, Z, lin_q, b):
+        """Quadratic part plus the safety term at Z with b_i = b (see SQPZStep.merit)."""
+        return merit(self.H, lin_q, Z, b, self.hard, self.s.slack_penalty, self.s.lambda_s)
+
+    def __call__(self, Z, mu, c_Z, zstate=None):
+        """Z_{k+1} from Z_k as SQPZStep.__call__; info: SQP iterations, max slack (m^2), infeasible, min b_i, lin_offset."""
+        s = self.s
+        radius = s.trust_radius if zstate is None else zstate
+        lin_q, Z = z_start(self.Phi_3.q, self.C, self.rho, mu, c_Z, Z, self.lo, self.hi)
+        b, Jb = self.safety.linearize(Z, 0.0 if zstate is None else s.reuse_radius)
+        b_Z, slack, its = b, 0.0, 0
+        for its in range(1, s.max_iters + 1):
+            f, lo, hi, c_lo = z_qp(lin_q, Z, b, Jb, radius, self.lo, self.hi, self.xy, self.hard, s.lambda_s)
+            Z_new, slack = z_trial(self.qp.solve(f, lo, hi, Jb, c_lo), Jb, c_lo, self.lo, self.hi, self.hard)
+            b_new = self.safety.trial(Z_new, s.reuse_radius)
+            accepted, radius, step = verdict(self.H, lin_q, Z, Z_new, b, Jb, b_new, radius, self.hard, s.slack_penalty,
+                                             s.lambda_s, s.max_radius, s.min_radius)
+            if accepted:
+                Z, b_Z = Z_new, b_new
+                if step < s.tol:
+                    break
+                b, Jb = self.safety.linearize(Z, s.reuse_radius)
+        return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > s.slack_tol,
+                           "b_min": float(b_Z.min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
+
+
+def compiled(zstep):
+    """The compiled counterpart of a bound Z-step class (conf/zstep/): sqp's is CompiledSQPZStep with the same settings;
+    another (pygranso, which differentiates through torch) runs as it is."""
+    if getattr(zstep, "func", None) is SQPZStep:
+        return partial(CompiledSQPZStep, *zstep.args, **zstep.keywords)
+    return zstep

@@ -1,0 +1,138 @@
+"""The compiled core (mpc.core=compiled: numba kernels, DAQP) gives the reference core's plans (numpy, OSQP solved
+tight) on saved planning states for every source it runs, and its compiled rollouts, network Jacobians and b_i
+gradients match the reference maths and central differences."""
+import numpy as np
+import pytest
+import torch
+from test_surrogate import smooth_student
+
+from bench.states import collect, solver_step
+from core.rollout import SLOTS, T_OBS, b_i, b_i_jacobian, ego_xy, rollout_jacobian
+from distill.models import StudentPredictor
+from distill.predictors import ConstantVelocity
+from planner import jit_rollout
+from planner.daqp_qp import SoftQP
+from planner.gradients import ExactLocal, Surrogate
+from planner.qp import QP
+from planner.setup import drive, make, planner_config, setup
+from surrogate import models
+from surrogate.export import export
+from surrogate.network import Fused, JacobianNet
+
+TIGHT = ("mpc.osqp.eps_abs=1e-7", "mpc.osqp.eps_rel=1e-7", "mpc.osqp.max_iter=20000")  # the reference's QPs near exact
+U_TOL, Z_TOL = 5e-3, 1e-2  # rad or m/s^2, and m: a few times ADMM's tol_step (1e-3), where both converged
+
+
+@pytest.fixture(scope="module")
+def states():
+    """Planning states (observation, warm start) of a closed-loop two_lane run with the analytic predictor."""
+    return collect(scenarios=("two_lane",), per_scenario=8, gradients="analytic")
+
+
+def student_source():
+    """The student source over a smooth random-weight student whose others react to the ego."""
+    return ExactLocal("student", StudentPredictor(smooth_student()))
+
+
+def surrogate_source(tmp_path):
+    """A fused surrogate export as the planner loads one: a random-weight JacobianNet about constant velocity's Jacobian
+    (as a trained one predicts about its training mean) beside the smooth student."""
+    torch.manual_seed(1)
+    net = JacobianNet(T_OBS, SLOTS, 16, 1, "").eval()
+    with torch.no_grad():
+        net.J_mean.copy_(torch.tensor(ConstantVelocity().phi_jac(np.zeros((1, T_OBS, SLOTS, 2)))[1].reshape(-1)))
+        net.J_std.fill_(0.05)
+    export(Fused(net, smooth_student()), tmp_path / "surrogate.onnx", T_OBS, SLOTS, "student")
+    return Surrogate("surrogate", None, models.load(tmp_path, T_OBS, SLOTS - 1))
+
+
+SOURCES = {"cv": lambda tmp: ExactLocal("cv", ConstantVelocity()), "analytic": lambda tmp: make("two_lane", ["gradients=analytic"])[1],
+           "student": lambda tmp: student_source(), "surrogate": surrogate_source}
+
+
+@pytest.mark.parametrize("name", list(SOURCES))
+def test_compiled_step_gives_the_reference_plan(name, states, tmp_path):
+    src = SOURCES[name](tmp_path)
+    compiled = make("two_lane", ["gradients=analytic", "mpc.core=compiled"])[2]
+    reference = make("two_lane", ["gradients=analytic", "mpc.core=reference", *TIGHT])[2]
+    both = 0
+    for st in states:
+        a, b = solver_step()(compiled, st.obs, src, st.warm), solver_step()(reference, st.obs, src, st.warm)
+        if "converged" in (a.reason, b.reason):  # unconverged (max_iters) runs end anywhere: only converged ones compare
+            assert a.reason == b.reason == "converged"
+            both += 1
+            assert np.abs(a.u - b.u).max() <= U_TOL and np.abs(a.plan.Z - b.plan.Z).max() <= Z_TOL
+            assert abs(a.J - b.J) <= 1e-3 * max(abs(b.J), 1.0)
+    assert both >= 3
+
+
+@pytest.mark.parametrize("name", ["cv", "student"])
+def test_compiled_rollout_equals_the_reference_chain_rule(name, states):
+    src = SOURCES[name](None)
+    st = states[3]
+    ego = ego_xy(st.warm.Z, 8).copy()
+    got = jit_rollout.compiled_jacobian(src)(st.obs.history, ego)
+    want = rollout_jacobian(src.predictor.phi_jac, st.obs.history, ego)
+    assert np.abs(got[0] - want[0]).max() < 1e-10 and np.abs(got[1] - want[1]).max() < 1e-10
+
+
+def test_compiled_student_jacobian_matches_central_differences(states):
+    pred = StudentPredictor(smooth_student())
+    Ws, bs = tuple(W for W, _ in pred.weights), tuple(b for _, b in pred.weights)
+    window = np.ascontiguousarray(states[3].obs.history)
+    _, J = jit_rollout.student_phi_jac(Ws, bs, pred.s, window)
+    h, flat = 1e-5, window.reshape(-1)
+    fd = np.stack([(jit_rollout.student_phi_jac(Ws, bs, pred.s, (flat + h * e).reshape(window.shape))[0]
+                    - jit_rollout.student_phi_jac(Ws, bs, pred.s, (flat - h * e).reshape(window.shape))[0]).reshape(-1) / (2 * h)
+                   for e in np.eye(flat.size)], axis=1)
+    assert np.abs(J[2:]).max() > 1e-3 and np.abs(J - fd).max() < 1e-6
+
+
+def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(states):
+    src, st, R = student_source(), states[3], 3.95
+    ego0 = ego_xy(st.warm.Z, 8).copy()
+    values0, grads = jit_rollout.compiled_jacobian(src)(st.obs.history, ego0)
+    ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
+    Z.reshape(8, 4)[:, :2] = ego
+    b, Jb = jit_rollout.b_i_affine(Z, ego0, values0, grads, R)
+    affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
+    want = b_i_jacobian(affine(ego), grads, R)
+    assert np.abs(b - want[0]).max() < 1e-9 and np.abs(Jb - want[1]).max() < 1e-9
+    h = 1e-6
+    fd = np.stack([(b_i(affine(ego_xy(Z + h * e, 8)), R) - b_i(affine(ego_xy(Z - h * e, 8)), R)).reshape(-1) / (2 * h)
+                   for e in np.eye(Z.size)], axis=1)
+    assert np.abs(Jb - fd).max() < 1e-5 * max(1.0, np.abs(Jb).max())
+
+
+def test_soft_qp_prices_violations_like_the_explicit_slack_qp():
+    """DAQP's soft rows with the L1 price give the Z-step's elastic QP (slack variables s >= 0 priced linearly), solved
+    here by OSQP at tight tolerances, also where the rows cannot all hold inside the box."""
+    rng = np.random.default_rng(0)
+    n, m, price = 6, 4, 50.0
+    L = rng.normal(size=(n, n))
+    H, f, A = L @ L.T + n * np.eye(n), rng.normal(size=n), rng.normal(size=(m, n))
+    lo, hi = -np.ones(n), np.ones(n)
+    c_lo = np.array([20.0, -1.0, 0.5, 30.0])  # rows 0 and 3 out of reach in the box: violated at a price
+    x = SoftQP(H, price, True, m).solve(f, lo, hi, A, c_lo)
+    P = np.block([[H, np.zeros((n, m))], [np.zeros((m, n)), np.zeros((m, m))]])
+    G = np.block([[np.eye(n), np.zeros((n, m))], [A, np.eye(m)], [np.zeros((m, n)), np.eye(m)]])
+    tight = {"eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 200000, "polishing": True}
+    want = QP(P, np.concatenate([f, np.full(m, price)]), G, np.concatenate([lo, c_lo, np.zeros(m)]),
+              np.concatenate([hi, np.full(2 * m, np.inf)]), tight).solve()
+    assert np.max(c_lo - A @ x) > 1.0  # the price is paid, not the rows enforced
+    assert np.abs(x - want[:n]).max() < 1e-5
+
+
+def test_compiled_closed_loop_drives_the_reference_episode_with_cv():
+    """Table II's two_lane merge with constant velocity, whose steps converge: the same episode, step for step. (With
+    steps that stop at max_iters, as the trained predictors' often do, episodes part as they do when only OSQP's
+    tolerance changes: there the batch statistics compare.)"""
+    episodes = []
+    for core in ("compiled", "reference"):
+        cfg = planner_config("two_lane", ["gradients=cv", "method=admm", f"mpc.core={core}", *TIGHT])
+        scenario, src, s = setup(cfg)
+        episodes.append(drive(cfg, scenario, src, s, "admm"))
+    a, b = episodes
+    assert len(a.controls) == len(b.controls) and not a.collided and not b.collided
+    assert np.abs(a.controls - b.controls).max() <= U_TOL
+    assert [bool(r["fallback"]) for r in a.rows] == [bool(r["fallback"]) for r in b.rows]
