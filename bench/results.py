@@ -331,7 +331,7 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
                                         len(worlds), f" ({detail})" if detail else "")
     lines = ["## Dense traffic (headline)", "",
              f"`planner scenario=dense episodes={p.dense_episodes} method=both seed={cfg.planner_seed}` per gradient source and "
-             "training, and `ceiling scenario=dense` on the same worlds: the clairvoyant ceiling searches gap-targeting "
+             "training, and `ceiling scenario=dense` on the same worlds: the clairvoyant ceiling searches cut-ins, gap acceptance and gap-targeting "
              "strategies on copies of each world with its true hidden decisions, the never-yield ceiling the same with every "
              "driver stubborn (bench/ceiling.py). A merge is courteous when nothing collides and nobody brakes harder than "
              f"b_safe = {sc.b_safe:g} m/s^2. t_merge: over the planners' merged episodes, the ceiling's courteous worlds (its "
