@@ -47,6 +47,9 @@ REPO = Path(__file__).resolve().parents[1]
     ("distill", "eval_split=dev", "eval_split=dev: must be one of train, val, test"),
     ("surrogate", "source=cv", "source=cv: must be one of student, teacher"),
     ("surrogate", "data.batch_size=0", "data.batch_size=0: must be an integer >= 1"),
+    ("bench", "threads=0", "threads=0: must be an integer >= 1"),
+    ("bench", "step_time.repeats=0", "step_time.repeats=0: must be an integer >= 1"),
+    ("bench", "step_time.profile=[nonexistent]", "step_time.profile=['nonexistent']: must be a list, each one of"),
 ])
 def test_bad_config_values_are_one_line_naming_key_value_and_range(config, override, message):
     with pytest.raises(UserError) as e:
