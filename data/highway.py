@@ -259,15 +259,19 @@ class HighwayWorld:
         """xy (steps, M, 2), newest last; before t = 0 at constant velocity."""
         return remembered_xy(self.seen, steps, self.params.dt)
 
-    def step(self, ego_u) -> list:
-        """Advance dt with the ego applying [delta (rad), a (m/s^2)] through the env's action; the pairs that collided."""
+    def _act(self, ego_u):
+        """One env step with the ego applying [delta (rad), a (m/s^2)] through the env's action mapping."""
         a = self.env.config["action"]
         self.env.step(to_action(ego_u, a["acceleration_range"], a["steering_range"]))
+
+    def step(self, ego_u) -> list:
+        """Advance dt with the ego applying [delta (rad), a (m/s^2)]; the pairs that collided."""
+        self._act(ego_u)
         return self._advance()
 
     def step_to(self, ego_z) -> list:
         """Advance dt with the others driving and the ego then put at ego_z (4,)."""
-        self.env.step(to_action(np.zeros(2), **{k: self.env.config["action"][k] for k in ("acceleration_range", "steering_range")}))
+        self._act(np.zeros(2))
         x, y, psi, v = ego_z
         ego = self.env.vehicle
         ego.position, ego.heading, ego.speed = np.array([x, -y]), -psi, max(v, 0.0)
