@@ -94,3 +94,22 @@ def b_i_jacobian(values, grads, R):
     dZ = np.zeros((n, T_p, T_p, 4))
     dZ[..., :2] = db  # b depends on Z only through the ego's x, y
     return b_i(values, R).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
+
+
+def accelerations(values, history, dt):
+    """The others' accelerations along the road (N, T_p) in m/s^2 over a rollout: second differences of their x, the
+    last two observed steps first; values (T_p, SLOTS, 2), history (T_obs, SLOTS, 2), step dt (s)."""
+    x = np.concatenate([history[-2:, 1:, 0], values[:, 1:, 0]])  # (T_p + 2, N)
+    return ((x[2:] - 2.0 * x[1:-1] + x[:-2]) / dt**2).T
+
+
+def courtesy_jacobian(values, grads, history, dt, b_c):
+    """Courtesy rows c_i = a_i + b_c (N*T_p,) in m/s^2, >= 0 when the plan makes nobody brake harder than b_c (m/s^2),
+    and d c_i / d Z (N*T_p, 4T_p), from rollout values (T_p, SLOTS, 2) and d values / d ego xy (T_p, SLOTS, 2, T_p, 2);
+    rows ordered as b_i_jacobian's."""
+    T_p, n = len(values), values.shape[1] - 1
+    g = np.concatenate([np.zeros((2, n, T_p, 2)), grads[:, 1:, 0]])  # d x_i / d ego xy, observed steps first
+    da = (g[2:] - 2.0 * g[1:-1] + g[:-2]) / dt**2  # (T_p, N, T_p, 2)
+    dZ = np.zeros((n, T_p, T_p, 4))
+    dZ[..., :2] = da.transpose(1, 0, 2, 3)
+    return (accelerations(values, history, dt) + b_c).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)

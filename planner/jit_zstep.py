@@ -9,7 +9,7 @@ from numba import njit
 from core.rollout import ego_xy
 from planner.daqp_qp import INF, SoftQP
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_rollout import b_i_affine, compiled_chain, compiled_jacobian
+from planner.jit_rollout import b_i_affine, compiled_chain, compiled_jacobian, courtesy_affine
 from planner.safety import Safety
 from planner.zstep import SQPZStep
 
@@ -18,9 +18,10 @@ class CompiledSafety(Safety):
     """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts (other
     Python-side local Jacobians composed by the compiled chain rule)."""
 
-    def __init__(self, source, history, R, T_p):
-        super().__init__(source, history, R, T_p)
+    def __init__(self, source, history, R, T_p, courtesy=None):
+        super().__init__(source, history, R, T_p, courtesy)
         self.history = np.ascontiguousarray(self.history)
+        self.x_obs = np.ascontiguousarray(self.history[-2:, :, 0])
         self.jacobian = compiled_jacobian(source) or compiled_chain(source) or source.jacobian
         self._last = None  # (Z, the linearisation, (b_i, d b_i / d Z)) of the last `reused`
 
@@ -29,11 +30,15 @@ class CompiledSafety(Safety):
         return np.inf if self._lin is None else offset(Z, self._lin[0])
 
     def reused(self, Z):
-        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p) about the last linearisation (see Safety.reused); the last
+        """The rows (b_i, then courtesy) and their d / d Z about the last linearisation (see Safety.reused); the last
         result is kept, since the SQP step linearises an accepted trial plan again."""
         if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
             ego0, values0, grads = self._lin
-            self._last = (Z, self._lin, b_i_affine(Z, ego0, values0, grads, self.R))
+            rows = b_i_affine(Z, ego0, values0, grads, self.R)
+            if self.courtesy:
+                c, Jc = courtesy_affine(Z, ego0, values0, grads, self.x_obs, *self.courtesy)
+                rows = np.concatenate([rows[0], c]), np.concatenate([rows[1], Jc])
+            self._last = (Z, self._lin, rows)
         return self._last[2]
 
     def linearize(self, Z, reuse_radius=0.0):
@@ -134,7 +139,7 @@ class CompiledSQPZStep:
         self.H = np.ascontiguousarray(prob.Phi_3.P + prob.rho * (prob.dyn.C.T @ prob.dyn.C))
         self.xy = np.tile([True, True, False, False], len(self.lo) // 4)
         self.hard = settings.mode == "hard"
-        self.qp = SoftQP(self.H, settings.slack_penalty, self.hard, (safety.history.shape[1] - 1) * (len(self.lo) // 4))
+        self.qp = SoftQP(self.H, settings.slack_penalty, self.hard, safety.rows)
 
     def merit(self, Z, lin_q, b):
         """Quadratic part plus the safety term at Z with b_i = b (see SQPZStep.merit)."""
@@ -159,7 +164,8 @@ class CompiledSQPZStep:
                     break
                 b, Jb = self.safety.linearize(Z, s.reuse_radius)
         return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > s.slack_tol,
-                           "b_min": float(b_Z.min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
+                           "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
+                                   "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
 
 
 def compiled(zstep):

@@ -9,10 +9,10 @@ from typing import NamedTuple
 import numpy as np
 
 from core.jobs import UserError
-from core.rollout import b_i, ego_xy
+from core.rollout import accelerations, b_i, ego_xy
 from data import bicycle
 from data.world import Road, steer_to
-from planner import admm, cost, dynamics, jit_admm, jit_rollout, jit_zstep
+from planner import admm, cost, dynamics, jit_admm, jit_rollout, jit_zstep, repair
 from planner.jit_zstep import CompiledSafety
 from planner.qp import SolverFailure
 from planner.safety import Safety
@@ -34,6 +34,7 @@ class Settings:
     r: float  # ego's safety radius (m)
     r_i: float  # the others' safety radius (m)
     eps: float  # safety margin (m)
+    b_courtesy: float | None  # courtesy rows: nobody predicted to brake harder than this (m/s^2); None: none (the paper)
     delta_box: tuple  # rad
     a_box: tuple  # m/s^2
     psi_box: tuple  # rad
@@ -46,7 +47,10 @@ class Settings:
     check_tol: float  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
     check_steps: int  # steps of that rollout checked: only its start is ever applied, the rest is replanned
     check_relative: bool  # also accept a plan no less safe than braking in lane (see acceptable)
+    repair_iters: int  # repair steps (planner.repair) for a plan that fails the check; 0: none, the paper
+    repair_margin: float  # b_i (m^2) a repair step aims for on the linearised rollout
     brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
+    starts: tuple  # accelerations (m/s^2) of the extra ADMM starts holding the lane (lane_starts); (): none, the paper
 
     @property
     def R(self) -> float:
@@ -75,6 +79,7 @@ class StepResult(NamedTuple):
     slack: float
     fallback: str  # "" when the solver's plan was applied
     zstop: str = ""  # why the last Z-update stopped, where its solver says (PyGranso's termination)
+    c_min: float = np.nan  # the plan's smallest courtesy row a_i + b_c (m/s^2), where the Z-step has them
 
 
 def simulate(z0, Delta, alpha, params):
@@ -115,27 +120,49 @@ def J_of(s: Settings, u_prev, Delta, alpha, Z):
 def start_point(s: Settings, obs: Observation, warm: admm.ADMMState | None):
     """Where a step's solver starts (the shifted previous plan, or zero inputs rolled out: cold) and the dynamics
     linearised for it; shared by ADMM and solver=ipopt so both solve the same problem from the same point."""
-    z0, u_prev = np.asarray(obs.z0, float), np.asarray(obs.u_prev, float)
+    z0 = np.asarray(obs.z0, float)
     if warm is None:
         Delta, alpha = np.zeros(s.T_p), np.zeros(s.T_p)
         start = admm.ADMMState(Delta, alpha, simulate(z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
     else:
         start = shift(warm)._replace(zstate=None)
+    return start, linearization(s, obs, start)
+
+
+def linearization(s: Settings, obs: Observation, start: admm.ADMMState):
+    """Eq. (5)'s dynamics for a solve from `start`: about the last observed state, or along the start's plan."""
     plan = (start.Delta, start.alpha, start.Z) if s.linearize == "along_plan" else None
-    return start, dynamics.linearize(z0, u_prev[0], u_prev[1], s.params, s.T_p, plan)
+    return dynamics.linearize(np.asarray(obs.z0, float), obs.u_prev[0], obs.u_prev[1], s.params, s.T_p, plan)
 
 
-def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep):
-    """The step's Problem, its Solvers (the Z-step built by `zstep`, a planner.zstep class with its settings bound) and
-    the ADMM start (start_point, Z clipped to the state box)."""
-    start, dyn = start_point(s, obs, warm)
+def lane_starts(s: Settings, obs: Observation):
+    """The extra ADMM starts (name, ADMMState): for each acceleration in s.starts (m/s^2), holding the current lane at
+    it (see lane_plan); they let a step leave the shifted plan's local minimum for waiting, or for a gap further on."""
+    out = []
+    for a in s.starts:
+        Delta, alpha = lane_plan(s, obs.z0, a)
+        out.append((f"lane {a:+g}", admm.ADMMState(Delta, alpha, simulate(obs.z0, Delta, alpha, s.params),
+                                                   np.zeros(4 * s.T_p))))
+    return out
+
+
+def courtesy(s: Settings):
+    """The Safety's courtesy argument: (dt s, b_c m/s^2), or None without courtesy rows."""
+    return None if s.b_courtesy is None else (s.params.dt, float(s.b_courtesy))
+
+
+def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep, start: admm.ADMMState = None):
+    """The step's Problem (eq. (5) by linearization), its Solvers (the Z-step built by `zstep`, a planner.zstep class
+    with its settings bound) and the ADMM start, Z clipped to the state box: `start`, or start_point's from warm."""
+    start = start_point(s, obs, warm)[0] if start is None else start
     lo, hi = state_box(s)
-    prob = admm.Problem(dyn, *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box), tuple(s.a_box), lo, hi)
+    prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box),
+                        tuple(s.a_box), lo, hi)
     if s.core == "compiled":
-        safety = CompiledSafety(source, obs.history, s.R, s.T_p)
+        safety = CompiledSafety(source, obs.history, s.R, s.T_p, courtesy(s))
         solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp)
     else:
-        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p), s.osqp)
+        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p, courtesy(s)), s.osqp)
     return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
 
 
@@ -149,27 +176,60 @@ def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
     return s.check_relative and b_min >= min(0.0, plan_safe(s, obs, source, *brake_plan(s, obs.z0))[0]) - s.check_tol
 
 
-def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
-    """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
+def rollout(s: Settings, obs: Observation, source, Delta, alpha):
+    """The nonlinear rollout Z of (Delta, alpha) and the predictor's values (T_p, SLOTS, 2) under it."""
     Z = simulate(obs.z0, Delta, alpha, s.params)
     ego = ego_xy(Z, s.T_p)
     compiled = jit_rollout.compiled_jacobian(source) if s.core == "compiled" else None  # cv, student: values and J in ~0.1 ms
-    values = compiled(obs.history, ego)[0] if compiled else source.values(obs.history, ego[None])[0]
+    return Z, compiled(obs.history, ego)[0] if compiled else source.values(obs.history, ego[None])[0]
+
+
+def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
+    """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
+    Z, values = rollout(s, obs, source, Delta, alpha)
     return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf)), Z
 
 
-def brake_plan(s: Settings, z0):
-    """Controls Delta, alpha (T_p,) that steer to the current lane's centre (straddling: the lane away from y_ref) and
-    brake at s.brake to a stop, never into reverse (the bicycle's v may go negative)."""
+def imposed(s: Settings, obs: Observation, source, Delta, alpha):
+    """The hardest braking (m/s^2, >= 0) the predictor expects of another car over the nonlinear rollout of the plan."""
+    values = rollout(s, obs, source, Delta, alpha)[1]
+    return float(max(0.0, -accelerations(values, obs.history, s.params.dt).min(initial=0.0)))
+
+
+def lane_plan(s: Settings, z0, a):
+    """Controls Delta, alpha (T_p,) that steer to the current lane's centre (straddling: the lane away from y_ref) at
+    acceleration a (m/s^2) within the box, never into reverse (the bicycle's v may go negative)."""
     z, Delta, alpha = np.asarray(z0, float), [], []
     lane_y = s.road.centre(s.road.lane_of(z[1]))
     if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
         lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
     for _ in range(s.T_p):
         Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
-        alpha.append(max(s.brake, -z[3] / s.params.dt))
+        alpha.append(max(float(np.clip(a, *s.a_box)), -z[3] / s.params.dt))
         z = bicycle.step(z, [Delta[-1], alpha[-1]], s.params)
     return np.array(Delta), np.array(alpha)
+
+
+def brake_plan(s: Settings, z0):
+    """Controls Delta, alpha (T_p,) that hold the current lane (lane_plan) braking at s.brake to a stop."""
+    return lane_plan(s, z0, s.brake)
+
+
+def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):
+    """The plan st with its controls repaired (planner.repair) until its checked rollout is acceptable, at most
+    s.repair_iters steps, with its min b_i (m^2); None when no repair passes the check."""
+    Phi_1, Phi_2, _ = costs(s, obs.u_prev)
+    W = np.block([[Phi_1.P, np.zeros_like(Phi_1.P)], [np.zeros_like(Phi_2.P), Phi_2.P]])
+    Delta, alpha = st.Delta, st.alpha
+    for _ in range(s.repair_iters):
+        Z = simulate(obs.z0, Delta, alpha, s.params)
+        b, Jb = safety.linearize(Z)
+        Delta, alpha = repair.repair_step(obs.z0, Delta, alpha, Z, b[:safety.n_b], Jb[:safety.n_b], s.params, W,
+                                          s.delta_box, s.a_box, s.check_steps, s.repair_margin, s.osqp)
+        b_min, Z = plan_safe(s, obs, source, Delta, alpha)
+        if acceptable(s, obs, source, b_min):
+            return st._replace(Delta=Delta, alpha=alpha, Z=Z, zstate=None), b_min
+    return None
 
 
 def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResult:
@@ -195,30 +255,63 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
                       reason="fallback", F_norm=np.nan, b_min=np.nan, slack=np.nan, fallback=f"{why}; braking in lane")
 
 
+def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zstep):
+    """ADMM (Algorithm 1) from `start`, then the check of its plan, repaired if it fails (planner.repair): (StepResult
+    with fallback "" or None, why it failed). Raises what the solvers raise."""
+    prob, solvers, start = build(s, obs, source, None, zstep, start)
+    st, solve = (jit_admm if s.core == "compiled" else admm).admm_solve(prob, solvers, start, *s.admm)
+    if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
+        return None, "non-finite iterate"
+    b_min, reason = min(plan_safe(s, obs, source, st.Delta, st.alpha)[0], solve.zinfo.get("b_min", np.inf)), solve.reason
+    if not acceptable(s, obs, source, b_min):
+        why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
+        try:
+            fixed = repaired(s, obs, source, solvers.zstep.safety, st) if s.repair_iters else None
+        except (SolverFailure, np.linalg.LinAlgError) as e:
+            why, fixed = f"{why}, repair failed ({e})", None
+        if fixed is None:
+            return None, f"{why} (min b_i {b_min:.2f} m^2)"
+        (st, b_min), reason = fixed, f"{reason}, repaired"
+    return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=prob.J(st), iters=solve.iters, reason=reason,
+                      F_norm=solve.F_norm, b_min=b_min, slack=solve.zinfo.get("slack", 0.0), fallback="",
+                      zstop=solve.zinfo.get("termination_reason", ""), c_min=solve.zinfo.get("c_min", np.nan)), ""
+
+
+def choose(s: Settings, obs: Observation, source, plans):
+    """The plan to apply among solved (name, StepResult): with several, the least predicted braking above b_courtesy
+    (m/s^2; without courtesy rows, b_safe is not the planner's to judge: none), then the lowest cost J."""
+    if len(plans) == 1:
+        return plans[0]
+    excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, imposed(s, obs, source, r.plan.Delta, r.plan.alpha)
+                                                             - s.b_courtesy)
+    return min(plans, key=lambda p: (excess(p[1]), p[1].J))
+
+
 def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
-    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks; zstep: the Z-step class with its settings bound
+    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks: from the shifted previous plan and from each
+    of s.starts' (lane_starts), the best checked plan (choose); zstep: the Z-step class with its settings bound
     (conf/zstep/, bound by conf/solver/admm.yaml)."""
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
         return fallback(s, obs, source, warm, "non-finite observation")
-    try:
-        prob, solvers, start = build(s, obs, source, warm, zstep)
-        st, solve = (jit_admm if s.core == "compiled" else admm).admm_solve(prob, solvers, start, *s.admm)
-    except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
-        return fallback(s, obs, source, warm, f"solver failure ({e})")
-    except UserError:  # the user's to fix (a missing optional solver): one line, not a fallback every step
-        raise
-    except Exception as e:  # anything else the config check let through (planner.setup): a fallback with its reason
-        why = f"step error ({type(e).__name__}: {str(e)[:200]})"
+    plans, whys = [], []
+    for name, start in [("shifted", start_point(s, obs, warm)[0]), *lane_starts(s, obs)]:
+        try:
+            result, why = solve_from(s, obs, source, start, zstep)
+        except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
+            result, why = None, f"solver failure ({e})"
+        except UserError:  # the user's to fix (a missing optional solver): one line, not a fallback every step
+            raise
+        except Exception as e:  # anything else the config check let through (planner.setup): a fallback with its reason
+            result, why = None, f"step error ({type(e).__name__}: {str(e)[:200]})"
+        if result is None:
+            whys.append(why)
+        else:
+            plans.append((name, result))
+    if not plans:
+        why = whys[0] if len(set(whys)) == 1 else "; ".join(f"{n}: {w}" for n, w in zip(["shifted", *s.starts], whys))
         try:
             return fallback(s, obs, source, warm, why)
         except Exception:  # the predictor cannot judge the shifted plan either: brake in lane
             return fallback(s, obs, source, None, why)
-    if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
-        return fallback(s, obs, source, warm, "non-finite iterate")
-    b_min = min(plan_safe(s, obs, source, st.Delta, st.alpha)[0], solve.zinfo.get("b_min", np.inf))
-    if not acceptable(s, obs, source, b_min):
-        why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
-        return fallback(s, obs, source, warm, f"{why} (min b_i {b_min:.2f} m^2)")
-    return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=prob.J(st), iters=solve.iters, reason=solve.reason,
-                      F_norm=solve.F_norm, b_min=b_min, slack=solve.zinfo.get("slack", 0.0), fallback="",
-                      zstop=solve.zinfo.get("termination_reason", ""))
+    name, result = choose(s, obs, source, plans)
+    return result if len(plans) == 1 and not s.starts else result._replace(reason=f"{result.reason}, from {name}")

@@ -1,15 +1,20 @@
-"""Eq. (6)-(8) for one MPC step: b_i(Z) >= 0 against the gradient source's predictions, linearised with its Jacobian."""
+"""Eq. (6)-(8) for one MPC step: b_i(Z) >= 0 against the gradient source's predictions, linearised with its Jacobian,
+and optionally the courtesy rows c_i(Z) = a_i + b_c >= 0: nobody predicted to brake harder than b_c under the plan."""
 import numpy as np
 
-from core.rollout import b_i, b_i_jacobian, ego_xy
+from core.rollout import accelerations, b_i, b_i_jacobian, courtesy_jacobian, ego_xy
 
 
 class Safety:
-    """b_i(Z) for one MPC step: the gradient source's predictions from `history`, radius R (m); keeps the source's last
+    """The constraint rows of one MPC step, b_i(Z) (N*T_p, m^2) then, with `courtesy` = (dt s, b_c m/s^2), c_i(Z)
+    (N*T_p, m/s^2): the gradient source's predictions from `history`, radius R (m). Keeps the source's last
     linearisation (the ego plan it was taken at, the rollout values and their derivative), which nearby plans may reuse."""
 
-    def __init__(self, source, history, R, T_p):
+    def __init__(self, source, history, R, T_p, courtesy=None):
         self.source, self.history, self.R, self.T_p = source, np.asarray(history, dtype=float), R, T_p
+        self.courtesy = courtesy
+        self.n_b = (self.history.shape[1] - 1) * T_p  # b_i rows; the courtesy rows follow
+        self.rows = self.n_b * (2 if courtesy else 1)
         self.jacobian = source.jacobian  # (history, ego xy) -> (values, d values / d ego xy)
         self._lin = None  # (ego xy (T_p, 2), values (T_p, SLOTS, 2), d values / d ego xy (T_p, SLOTS, 2, T_p, 2))
 
@@ -18,8 +23,13 @@ class Safety:
         return ego_xy(Z, self.T_p)
 
     def __call__(self, Z):
-        """b_i(Z) flattened (N*T_p,), m^2, from the predictor's values only."""
-        return b_i(self.source.values(self.history, self.ego_xy(Z)[None])[0], self.R).reshape(-1)
+        """The rows at Z (b_i flattened, then the courtesy rows), from the predictor's values only."""
+        values = self.source.values(self.history, self.ego_xy(Z)[None])[0]
+        b = b_i(values, self.R).reshape(-1)
+        if not self.courtesy:
+            return b
+        dt, b_c = self.courtesy
+        return np.concatenate([b, (accelerations(values, self.history, dt) + b_c).reshape(-1)])
 
     def offset(self, Z):
         """How far (m, largest over the horizon and x, y) the ego's planned xy in Z lie from the last linearisation's."""
@@ -30,7 +40,11 @@ class Safety:
         ego's own position enters b_i exactly, only the others' response is linearised."""
         ego0, values0, grads = self._lin
         values = values0 + np.einsum("tmkse,se->tmk", grads, self.ego_xy(Z) - ego0)  # the ego slot moves exactly with Z
-        return b_i_jacobian(values, grads, self.R)
+        b, Jb = b_i_jacobian(values, grads, self.R)
+        if not self.courtesy:
+            return b, Jb
+        c, Jc = courtesy_jacobian(values, grads, self.history, *self.courtesy)
+        return np.concatenate([b, c]), np.concatenate([Jb, Jc])
 
     def trial(self, Z, reuse_radius=0.0):
         """b_i(Z) at a trial step: within reuse_radius of the last linearisation, from it; for a source whose values come
@@ -41,7 +55,7 @@ class Safety:
         return self(Z)
 
     def linearize(self, Z, reuse_radius=0.0):
-        """b_i(Z) (N*T_p,) and d b_i / d Z (N*T_p, 4T_p): from the last linearisation while the ego's plan stays within
+        """The rows at Z (rows,) and their derivative d / d Z (rows, 4T_p): from the last linearisation while the ego's plan stays within
         reuse_radius (m) of it (0: only at the same plan), else a new one from the gradient source."""
         if self.offset(Z) > reuse_radius:
             ego = self.ego_xy(Z).copy()

@@ -57,7 +57,7 @@ class SQPZStep:
         self.Phi_3, self.C, self.rho, self.safety, self.s = prob.Phi_3, prob.dyn.C, prob.rho, safety, settings
         self.lo, self.hi = prob.z_lo, prob.z_hi
         n_Z = self.C.shape[0]
-        n_b = (safety.history.shape[1] - 1) * (n_Z // 4)
+        n_b = safety.rows
         self.n_Z, self.n_b = n_Z, n_b
         self.H = self.Phi_3.P + self.rho * (self.C.T @ self.C)  # the exact Hessian of the smooth part
         G, self.G_rows, self.G_cols, G_data, self.is_b, self.xy = constraint_pattern(n_Z, n_b)
@@ -121,5 +121,6 @@ class SQPZStep:
             else:
                 radius = max(0.5 * radius, self.s.min_radius)
         return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
-                           "b_min": float(b_Z.min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
+                           "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
+                                     "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
 

@@ -7,7 +7,7 @@ import torch
 from test_surrogate import smooth_student
 
 from bench.states import collect, solver_step
-from core.rollout import SLOTS, T_OBS, b_i, b_i_jacobian, ego_xy, rollout_jacobian
+from core.rollout import SLOTS, T_OBS, accelerations, b_i, b_i_jacobian, courtesy_jacobian, ego_xy, rollout_jacobian
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
 from planner import jit_rollout
@@ -102,6 +102,28 @@ def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(sta
     fd = np.stack([(b_i(affine(ego_xy(Z + h * e, 8)), R) - b_i(affine(ego_xy(Z - h * e, 8)), R)).reshape(-1) / (2 * h)
                    for e in np.eye(Z.size)], axis=1)
     assert np.abs(Jb - fd).max() < 1e-5 * max(1.0, np.abs(Jb).max())
+
+
+def test_courtesy_rows_are_the_others_second_differences_and_their_gradient_matches_differences(states):
+    """c_i = a_i + b_c from the predicted x of the other cars (the last two observed steps first), its compiled and
+    reference derivatives against central differences of the student's affine rollout."""
+    src, st, dt, b_c = student_source(), states[3], 0.2, 3.0
+    hist = np.ascontiguousarray(st.obs.history)
+    ego0 = ego_xy(st.warm.Z, 8).copy()
+    values0, grads = jit_rollout.compiled_jacobian(src)(hist, ego0)
+    x = np.concatenate([hist[-2:, 2, 0], values0[:, 2, 0]])  # car 2 (slot 2), by hand
+    a = [(x[t + 2] - 2 * x[t + 1] + x[t]) / dt**2 for t in range(8)]
+    assert np.allclose(accelerations(values0, hist, dt)[1], a)
+    ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
+    Z.reshape(8, 4)[:, :2] = ego
+    affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
+    c, Jc = jit_rollout.courtesy_affine(Z, ego0, values0, grads, hist[-2:, :, 0].copy(), dt, b_c)
+    want = courtesy_jacobian(affine(ego), grads, hist, dt, b_c)
+    assert np.abs(c - want[0]).max() < 1e-9 and np.abs(Jc - want[1]).max() < 1e-9
+    h = 1e-6
+    rows = lambda Z_: accelerations(affine(ego_xy(Z_, 8)), hist, dt).reshape(-1) + b_c
+    fd = np.stack([(rows(Z + h * e) - rows(Z - h * e)) / (2 * h) for e in np.eye(Z.size)], axis=1)
+    assert np.abs(Jc).max() > 1e-3 and np.abs(Jc - fd).max() < 1e-4 * max(1.0, np.abs(Jc).max())
 
 
 def test_soft_qp_prices_violations_like_the_explicit_slack_qp():
