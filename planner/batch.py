@@ -170,7 +170,7 @@ def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
 
     tag = f"{method}_{source.name}_{scenario.name}"
     with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario.name}", method=method,
-                    episodes=cfg.episodes, **setup.run_params(scenario, source, cfg.zstep, cfg.seed, cfg.solver.name)):
+                    episodes=cfg.episodes, **setup.run_params(scenario, source, cfg)):
         out = drive_all(cfg, method)
         rows = [o[0] for o in out]
         step_ms = [t for o in out for t in o[1]]

@@ -54,7 +54,7 @@ def run(cfg: DictConfig) -> dict:
         csv_path = out_dir / f"steps_{m}.csv"
         report.write_csv(ep, csv_path)
         with mlflow_run("planner", cfg, run_name=f"{m}-{source.name}-{scenario.name}", method=m,
-                        **run_params(scenario, source, cfg.zstep, cfg.seed, cfg.solver.name)):
+                        **run_params(scenario, source, cfg)):
             mlflow.log_metrics(results[m])
             mlflow.log_artifact(str(csv_path))
             own = report.figures({m: ep}, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) if cfg.plots else []

@@ -3,7 +3,7 @@
 A step never raises for a bad observation, a solver failure, any other error in building or solving it, or an unsafe
 result: it returns the shifted previous plan (if the predictor still finds it safe) or braking in lane, with the reason.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -24,6 +24,7 @@ class Settings:
     config's `mpc` node, whose YAML is the one home of every value (planner.setup passes the scenario's y_ref, v_ref, road
     and params)."""
 
+    name: str  # the conf/mpc/ option (MLflow param `mpc`): paper | courteous
     weights: cost.Weights
     y_ref: float  # m
     v_ref: float  # m/s
@@ -50,7 +51,7 @@ class Settings:
     repair_iters: int  # repair steps (planner.repair) for a plan that fails the check; 0: none, the paper
     repair_margin: float  # b_i (m^2) a repair step aims for on the linearised rollout
     brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
-    starts: tuple  # accelerations (m/s^2) of the extra ADMM starts holding the lane (lane_starts); (): none, the paper
+    starts: tuple  # extra ADMM solves [offset (m), a (m/s^2)], aiming off the target lane (lane_starts); (): none
 
     @property
     def R(self) -> float:
@@ -136,13 +137,16 @@ def linearization(s: Settings, obs: Observation, start: admm.ADMMState):
 
 
 def lane_starts(s: Settings, obs: Observation):
-    """The extra ADMM starts (name, ADMMState): for each acceleration in s.starts (m/s^2), holding the current lane at
-    it (see lane_plan); they let a step leave the shifted plan's local minimum for waiting, or for a gap further on."""
-    out = []
-    for a in s.starts:
+    """The extra ADMM solves (name, start, settings): for each [offset (m), a (m/s^2)] in s.starts, ADMM aims at
+    y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; ~1.6: lean in, the
+    nudge), starting from holding the lane at a (lane_plan). The target lane's pull would draw every start into the
+    same basin; these solves stay in theirs and compete on the scenario's own cost (choose)."""
+    out, lane_y = [], s.road.centre(s.road.lane_of(obs.z0[1]))
+    for offset, a in s.starts:
+        y = lane_y + float(offset) * np.sign(s.y_ref - lane_y)
         Delta, alpha = lane_plan(s, obs.z0, a)
-        out.append((f"lane {a:+g}", admm.ADMMState(Delta, alpha, simulate(obs.z0, Delta, alpha, s.params),
-                                                   np.zeros(4 * s.T_p))))
+        start = admm.ADMMState(Delta, alpha, simulate(obs.z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
+        out.append((f"y {y:+.1f} m, a {a:+g}", start, replace(s, y_ref=y)))
     return out
 
 
@@ -288,15 +292,15 @@ def choose(s: Settings, obs: Observation, source, plans):
 
 
 def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
-    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks: from the shifted previous plan and from each
-    of s.starts' (lane_starts), the best checked plan (choose); zstep: the Z-step class with its settings bound
+    """One ADMM-NNMPC step (Algorithm 1's inner loop) with its fallbacks: from the shifted previous plan and, with
+    s.starts, the solves of lane_starts, the best checked plan (choose); zstep: the Z-step class with its settings bound
     (conf/zstep/, bound by conf/solver/admm.yaml)."""
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
         return fallback(s, obs, source, warm, "non-finite observation")
     plans, whys = [], []
-    for name, start in [("shifted", start_point(s, obs, warm)[0]), *lane_starts(s, obs)]:
+    for name, start, aim in [("shifted", start_point(s, obs, warm)[0], s), *lane_starts(s, obs)]:
         try:
-            result, why = solve_from(s, obs, source, start, zstep)
+            result, why = solve_from(aim, obs, source, start, zstep)
         except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
             result, why = None, f"solver failure ({e})"
         except UserError:  # the user's to fix (a missing optional solver): one line, not a fallback every step
@@ -304,11 +308,13 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         except Exception as e:  # anything else the config check let through (planner.setup): a fallback with its reason
             result, why = None, f"step error ({type(e).__name__}: {str(e)[:200]})"
         if result is None:
-            whys.append(why)
-        else:
+            whys.append((name, why))
+        elif aim is s:
             plans.append((name, result))
+        else:  # judged by the scenario's own cost
+            plans.append((name, result._replace(J=J_of(s, obs.u_prev, result.plan.Delta, result.plan.alpha, result.plan.Z))))
     if not plans:
-        why = whys[0] if len(set(whys)) == 1 else "; ".join(f"{n}: {w}" for n, w in zip(["shifted", *s.starts], whys))
+        why = whys[0][1] if len({w for _, w in whys}) == 1 else "; ".join(f"{n}: {w}" for n, w in whys)
         try:
             return fallback(s, obs, source, warm, why)
         except Exception:  # the predictor cannot judge the shifted plan either: brake in lane

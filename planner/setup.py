@@ -39,6 +39,9 @@ def setup(cfg: DictConfig):
                         "not a map of the observed window")
     if needs_world and cfg.world != "reactive":
         raise UserError("gradients=oracle predicts with the world's own drivers; it needs world=reactive")
+    if cfg.mpc.b_courtesy is not None and (cfg.solver.name != "admm" or get_object(cfg.zstep._target_).name != "sqp"):
+        raise UserError(f"mpc={cfg.mpc.name} has courtesy rows, which only solver=admm with zstep=sqp solves; use "
+                        f"mpc=paper for solver={cfg.solver.name}, zstep={get_object(cfg.zstep._target_).name}")
     scenario = build(cfg.scenario)
     source = build(cfg.gradients)
     check_window(cfg, source.predictor)
@@ -60,11 +63,10 @@ def make(scenario: str = "two_lane", overrides=()):
     return setup(planner_config(scenario, overrides))
 
 
-def run_params(scenario, source, zstep: DictConfig, seed: int, solver: str) -> dict:
-    """The MLflow params that name a planner run's set-up (compare groups rows by them); zstep: cfg.zstep, solver:
-    cfg.solver.name."""
-    return {"gradients": source.name, "zstep": get_object(zstep._target_).name, "solver": solver, "scenario": scenario.name,
-            "seed": seed, "predictor": source.predictor.name}
+def run_params(scenario, source, cfg: DictConfig) -> dict:
+    """The MLflow params that name a planner run's set-up (compare groups rows by them) from its `planner` config."""
+    return {"gradients": source.name, "zstep": get_object(cfg.zstep._target_).name, "solver": cfg.solver.name,
+            "scenario": scenario.name, "seed": cfg.seed, "predictor": source.predictor.name, "mpc": cfg.mpc.name}
 
 
 def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None) -> closed_loop.Episode:

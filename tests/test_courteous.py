@@ -1,0 +1,72 @@
+"""mpc=courteous: the repair of plans that miss the check, the choice among several solves, and its config; the courtesy
+rows' values and derivatives are checked in test_compiled_core."""
+import numpy as np
+import pytest
+
+from core.jobs import UserError
+from planner import admm, mpc
+from planner.safety import Safety
+from planner.setup import make
+
+
+@pytest.fixture(scope="module")
+def beside():
+    """mpc=courteous settings and cv on two_lane, the ego in its lane at 5 m/s level with a car in the target lane."""
+    _, source, s = make("two_lane", ["gradients=cv", "mpc=courteous"])
+    z0 = np.array([0.0, 0.0, 0.0, 5.0])
+    cars = np.array([[0.5, 4.0], [60.0, 4.0], [80.0, 4.0], [100.0, 4.0]])
+    history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
+    return s, source, mpc.Observation(z0, np.zeros(2), history)
+
+
+@pytest.mark.parametrize("steer", [0.07, 0.1])
+def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_least_change(beside, steer):
+    s, source, obs = beside
+    Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
+    b_min, Z = mpc.plan_safe(s, obs, source, Delta, alpha)
+    assert -0.5 < b_min < -s.check_tol  # R = 3.95 m: 0.5 m^2 is 6 cm
+    fixed, b_fixed = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p),
+                                  admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
+    assert b_fixed == pytest.approx(mpc.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
+    assert b_fixed >= s.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
+    assert 0.0 < np.abs(fixed.Delta - Delta).max() < 0.1 and fixed.Delta[0] < steer  # steered a little less
+    safe = np.full(s.T_p, 0.02)  # a plan that passes is left alone
+    b_safe, Z = mpc.plan_safe(s, obs, source, safe, alpha)
+    out = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p), admm.ADMMState(safe, alpha, Z, 0 * Z))
+    assert out[1] == pytest.approx(b_safe, abs=1e-6) and np.allclose(out[0].Delta, safe, atol=1e-6)
+
+
+def test_the_choice_puts_predicted_excess_braking_before_cost(beside, monkeypatch):
+    s, source, obs = beside
+    plan = lambda J, braking: mpc.StepResult(np.zeros(2), admm.ADMMState(np.full(s.T_p, braking), np.zeros(s.T_p), None,
+                                                                         None), J, 1, "converged", 0.0, 0.0, 0.0, "")
+    monkeypatch.setattr(mpc, "imposed", lambda s, obs, source, Delta, alpha: float(Delta[0]))  # predicted braking m/s^2
+    forcing, waiting, gentle = plan(1.0, 9.0), plan(5.0, 0.5), plan(4.0, 2.9)
+    assert mpc.choose(s, obs, source, [("force", forcing), ("wait", waiting)])[0] == "wait"
+    assert mpc.choose(s, obs, source, [("wait", waiting), ("gentle", gentle)])[0] == "gentle"  # both under b_courtesy: J
+    assert mpc.choose(s, obs, source, [("force", forcing), ("worse", plan(0.5, 9.5))])[0] == "force"
+    assert mpc.choose(s, obs, source, [("only", forcing)])[0] == "only"
+
+
+def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(beside):
+    s, source, obs = beside
+    step = mpc.mpc_step(s, obs, source, None, _sqp())
+    assert step.fallback == "" and ", from " in step.reason and step.c_min >= 0.0  # cv predicts no braking at all
+    paper = make("two_lane", ["gradients=cv"])[2]
+    assert paper.b_courtesy is None and paper.repair_iters == 0 and not paper.starts
+    assert "from" not in mpc.mpc_step(paper, obs, source, None, _sqp()).reason
+
+
+def _sqp():
+    """The bound sqp Z-step of the planner's config."""
+    from hydra.utils import instantiate
+
+    from planner.setup import planner_config
+
+    return instantiate(planner_config("two_lane", ["gradients=cv"]).solver.step).keywords["zstep"]
+
+
+@pytest.mark.parametrize("override", ["solver=ipopt", "zstep=pygranso"])
+def test_courtesy_rows_with_a_solver_that_cannot_hold_them_is_one_line(override):
+    with pytest.raises(UserError, match=r"^mpc=courteous has courtesy rows, which only solver=admm with zstep=sqp solves"):
+        make("two_lane", ["gradients=cv", "mpc=courteous", override])
