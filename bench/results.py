@@ -126,14 +126,17 @@ def build_plan(cfg, work: Path):
             f"sources=[{','.join(sources)}]", *p.interaction])
         plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
     check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
-    runs = [("dense", s, p.dense_episodes) for s in p.sources] + [("random", s, p.episodes) for s in p.sources] + \
-        [(sc, s, p.table2_episodes) for sc in p.scenarios for s in p.table2_sources]
-    for scenario, source, episodes in runs:
+    runs = [("dense", s, p.dense_episodes, []) for s in p.sources] + \
+        [("dense", s, p.dense_episodes, [f"mpc={m}", "method=admm"]) for m in p.dense_mpc for s in p.sources] + \
+        [("random", s, p.episodes, []) for s in p.sources] + \
+        [(sc, s, p.table2_episodes, []) for sc in p.scenarios for s in p.table2_sources]
+    for scenario, source, episodes, extra in runs:
         for k in p.training_seeds if source in TRAINED else [None]:
-            folder = work / "planner" / scenario / source / (f"seed{k}" if k is not None else "untrained")
-            batches[scenario, source, k] = folder
-            plan.add(f"planner {scenario} {source}" + (f" seed {k}" if k is not None else ""), planner_cli.run, planner_config(scenario, [
-                f"gradients={source}", "method=both", f"episodes={episodes}", f"seed={cfg.planner_seed}",
+            row = label(source, extra)
+            folder = work / "planner" / scenario / row / (f"seed{k}" if k is not None else "untrained")
+            batches[scenario, row, k] = folder
+            plan.add(f"planner {scenario} {row}" + (f" seed {k}" if k is not None else ""), planner_cli.run, planner_config(scenario, [
+                f"gradients={source}", "method=both", *extra, f"episodes={episodes}", f"seed={cfg.planner_seed}",
                 f"models_dir={models(p.training_seeds[0] if k is None else k)}", f"out_dir={folder}", "plots=false",
                 f"n_jobs={cfg.n_jobs}", f"backend={cfg.backend}", f"ray.address={cfg.ray.address or 'null'}", *p.planner]))
     for scenario, worlds in ceiling_worlds(p).items():
@@ -148,6 +151,17 @@ def build_plan(cfg, work: Path):
         "method=both", f"seed={cfg.planner_seed}", f"models_dir={models(p.training_seeds[0])}",
         f"out_dir={work / 'showcase'}", *[o for o in p.showcase if not o.startswith("scenario=")], *p.planner]))
     return plan, batches
+
+
+def label(source: str, extra: list) -> str:
+    """A batch's row name: the gradient source, with its conf/mpc/ option when not the paper's ("student courteous")."""
+    mpc = [o.split("=", 1)[1] for o in extra if o.startswith("mpc=")]
+    return " ".join([source, *mpc])
+
+
+def methods(folder: Path) -> list[str]:
+    """The methods (METHODS order) a batch's folder has episodes of: both, or ADMM alone for an mpc option's rows."""
+    return [m for m in METHODS if any(folder.glob(f"episodes_{m}_*.csv"))]
 
 
 def read_episodes(folder: Path, method: str) -> list[dict]:
@@ -214,7 +228,7 @@ def batch_rows(cfg, batches, scenario, sources, rng) -> dict:
     rows = {}
     for source in sources:
         folders = [f for (sc, s, _), f in batches.items() if sc == scenario and s == source]
-        for m in METHODS:
+        for m in methods(folders[0]):
             rows[source, m] = outcomes([read_episodes(f, m) for f in folders], cfg.bootstrap.resamples, rng)
     return rows
 
@@ -314,7 +328,8 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
     check that no planner beat the ceiling (logged too), and the ceiling's calibration table."""
     p = cfg.results_preset
     worlds = read_ceiling(work, "dense")
-    rows = {**batch_rows(cfg, batches, "dense", p.sources, rng),
+    labels = [*p.sources, *(label(s, [f"mpc={m}"]) for m in p.dense_mpc for s in p.sources)]
+    rows = {**batch_rows(cfg, batches, "dense", labels, rng),
             **{(name, ""): ceiling_row(out["ceiling dense"], worlds, k, cfg.bootstrap.resamples, rng)
                for k, name in SEARCHES.items()}}
     dense = {(s, k): f for (scen, s, k), f in batches.items() if scen == "dense"}
@@ -323,7 +338,7 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
     braking.update({name: [w[f"{k}_b_imposed"] for w in worlds] for k, name in SEARCHES.items()})
     sc = job_config("ceiling", ["scenario=dense", *p.ceiling]).scenario
     braking_plot(braking, sc.b_safe, sc.b_max, dest / "b_imposed.png")
-    beats = {(s, m, k): beaten(worlds, read_episodes(f, m)) for (s, k), f in dense.items() for m in METHODS}
+    beats = {(s, m, k): beaten(worlds, read_episodes(f, m)) for (s, k), f in dense.items() for m in methods(f)}
     beat = sorted(set().union(*beats.values()))
     detail = "; ".join(f"{s} {m.upper()}" + (f" training {k}" if k is not None else "") + f": seeds {sorted(v)}"
                        for (s, m, k), v in beats.items() if v)
@@ -336,7 +351,8 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
              "driver stubborn (bench/ceiling.py). A merge is courteous when nothing collides and nobody brakes harder than "
              f"b_safe = {sc.b_safe:g} m/s^2. t_merge: over the planners' merged episodes, the ceiling's courteous worlds (its "
              "interval Student t); the ceiling's braking on a world it found no courteous merge in is its least-braking "
-             "attempt's.", ""]
+             "attempt's. Rows `<source> <option>` are ADMM with that conf/mpc/ option (`mpc=courteous`: courtesy rows, repair, "
+             "wait and lean-in solves; planner.mpc), the others the paper's step (`mpc=paper`).", ""]
     lines += dense_table(rows)
     lines += ["![b_imposed](b_imposed.png)", "",
               f"Per-world check: planner beat the ceiling on {len(beat)} worlds of {len(worlds)} (a courteous merge the "

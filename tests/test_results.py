@@ -108,19 +108,20 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
     mine = planner[planner["params.out_dir"].str.startswith(str(work)) & (planner["params.scenario"] == "dense")]
     best = {w["seed"]: w["ceiling_t_merge"] if w["ceiling_courteous"] else np.inf for w in dense}
     beat = set()
-    for source in ("cv", "student"):
-        for method in ("admm", "nnmpc"):
-            r = mine[(mine["params.gradients"] == source) & (mine["params.method"] == method)]
-            assert len(r) == 1
-            eps = episodes_csv(r["params.out_dir"].iloc[0], method)
-            assert [e["seed"] for e in eps] == [2000000, 2000001]
-            row = lambda c: numbers(cell(md, "Dense traffic (headline)", source, method.upper(), c))
-            assert cell(md, "Dense traffic (headline)", source, method.upper(), 2) == "1 x 2"
-            assert row(3) == pytest.approx(rate_cell([e["courteous"] for e in eps]), abs=0.051)
-            assert row(4) == pytest.approx(rate_cell([e["merged"] for e in eps]), abs=0.051)
-            assert row(6)[0] == pytest.approx(np.mean([e["b_imposed_max"] for e in eps]), abs=0.0051)
-            assert row(7) == pytest.approx(rate_cell([e["collision"] for e in eps]), abs=0.051)
-            beat |= {e["seed"] for e in eps if e["courteous"] and e["t_merge"] < best[e["seed"]]}
+    for source, mpc, method in [(s, "paper", m) for s in ("cv", "student") for m in ("admm", "nnmpc")] + \
+            [(s, "courteous", "admm") for s in ("cv", "student")]:  # an mpc option's rows: ADMM alone
+        r = mine[(mine["params.gradients"] == source) & (mine["params.method"] == method) & (mine["params.mpc"] == mpc)]
+        assert len(r) == 1
+        eps = episodes_csv(r["params.out_dir"].iloc[0], method)
+        assert [e["seed"] for e in eps] == [2000000, 2000001]
+        name = source if mpc == "paper" else f"{source} {mpc}"
+        row = lambda c: numbers(cell(md, "Dense traffic (headline)", name, method.upper(), c))
+        assert cell(md, "Dense traffic (headline)", name, method.upper(), 2) == "1 x 2"
+        assert row(3) == pytest.approx(rate_cell([e["courteous"] for e in eps]), abs=0.051)
+        assert row(4) == pytest.approx(rate_cell([e["merged"] for e in eps]), abs=0.051)
+        assert row(6)[0] == pytest.approx(np.mean([e["b_imposed_max"] for e in eps]), abs=0.0051)
+        assert row(7) == pytest.approx(rate_cell([e["collision"] for e in eps]), abs=0.051)
+        beat |= {e["seed"] for e in eps if e["courteous"] and e["t_merge"] < best[e["seed"]]}
     for search, name in (("ceiling", "ceiling"), ("never_yield", "never-yield ceiling")):
         row = lambda c: cell(md, "Dense traffic (headline)", name, "-", c)
         hits = [w[f"{search}_courteous"] for w in dense]
