@@ -33,7 +33,7 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from bench import ceiling
+from bench import breakdown, ceiling
 from bench.branches import heldout_seeds
 from core import stats, validate
 from core.jobs import CONF_DIR, UserError, console, guarded, job_config, mlflow_run, writable
@@ -358,6 +358,13 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
               f"Per-world check: planner beat the ceiling on {len(beat)} worlds of {len(worlds)} (a courteous merge the "
               "ceiling did not find on that world, or a faster one; any source, method and training)"
               + (f": {detail}." if detail else "."), ""]
+    lines += ["Where each ADMM row falls short of the ceiling, world by world (bench/breakdown.py; in brackets: of them, "
+              "the worlds where the ceiling merged courteously):", ""]
+    lines += markdown(["gradients", *breakdown.OUTCOMES], [
+        [s, *(f"{n} ({ok})" for n, ok in breakdown.breakdown(
+            [e for (src, _), f in dense.items() if src == s for e in read_episodes(f, "admm")], worlds, sc.b_safe).values())]
+        for s, m in rows if m == "admm"])
+    lines += ["", *(f"- {c}: {what}" for c, what in breakdown.OUTCOMES.items()), ""]
     lines += ["## Ceiling calibration", "", f"`ceiling scenario=<scenario> seed={cfg.planner_seed}` (dense: the headline's "
               "run): how often the clairvoyant search merges courteously with the true hidden decisions and with every driver "
               "stubborn, and the largest braking of any other car with the ego held in its lane (a calm world: at most "

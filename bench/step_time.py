@@ -157,10 +157,13 @@ def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix
 
 
 def variants(cfg: DictConfig, srcs: dict, states) -> dict:
-    """The sources of cfg.step_time.reference with mpc.core=reference (`<name>-ref`) and those of
-    cfg.step_time.horizon at its T_p (`<name>-T<T_p>`, on states collected at that horizon beside cfg.states.path)."""
+    """The sources of cfg.step_time.reference with mpc.core=reference (`<name>-ref`), of cfg.step_time.courteous with
+    mpc=courteous (`<name>-courteous`) and of cfg.step_time.horizon at its T_p (`<name>-T<T_p>`, on states collected at
+    that horizon beside cfg.states.path)."""
     st, h = cfg.step_time, cfg.step_time.horizon
     out = steps_with(srcs, [n for n in st.reference if n in srcs], states, ("mpc.core=reference",), st.repeats, "-ref")
+    out.update(steps_with(srcs, [n for n in st.courteous if n in srcs], states, ("mpc=courteous",), st.repeats,
+                          "-courteous"))
     names = [n for n in h.sources if n in srcs]
     if names:
         overrides, path = (f"paper.T_p={h.T_p}",), Path(cfg.states.path)

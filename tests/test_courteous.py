@@ -70,3 +70,16 @@ def _sqp():
 def test_courtesy_rows_with_a_solver_that_cannot_hold_them_is_one_line(override):
     with pytest.raises(UserError, match=r"^mpc=courteous has courtesy rows, which only solver=admm with zstep=sqp solves"):
         make("two_lane", ["gradients=cv", "mpc=courteous", override])
+
+
+def test_the_breakdown_puts_each_world_in_one_class_against_the_ceiling():
+    from bench import breakdown
+
+    ep = lambda seed, merged=1.0, t=30.0, b=2.0, hit=0.0, falls=0.0: {
+        "seed": seed, "merged": merged, "t_merge": t, "b_imposed_max": b, "collision": hit, "fallbacks": falls}
+    worlds = [{"seed": k, "ceiling_courteous": float(k != 5), "ceiling_t_merge": 25.0 if k != 5 else 60.0} for k in range(7)]
+    episodes = [ep(0), ep(1, t=33.0), ep(2, b=6.0), ep(3, merged=0.0, t=60.0, falls=12), ep(4, merged=0.0, t=60.0),
+                ep(5, t=50.0), ep(6, hit=1.0, b=9.0), ep(7)]  # seed 7: no ceiling world, left out
+    counts = breakdown.breakdown(episodes, worlds, 4.0)
+    assert counts == {"courteous": (2, 1), "too slow": (1, 1), "forced": (1, 1), "collision": (1, 1),
+                      "fallback loop": (1, 1), "ran out of road": (1, 1)}
