@@ -311,6 +311,8 @@ class HighwayWorld:
 class HighwayScenario(DenseScenario):
     """The dense scenario's draw, driven in highway-env (its car size and axle distances in road and params)."""
 
+    predictor_moves = False  # highway-env's cars drive themselves (HighwayWorld.move)
+
     def make_world(self, seed: int) -> HighwayWorld:
         """World `seed`: our draw of the start, highway-env's vehicles from there."""
         env = DenseMergeEnv(config={"scenario": self})

@@ -1,5 +1,6 @@
 """Merge scenarios: the ego in lane 0 must reach lane 1 before x_ref beside a dense platoon of four reactive cars."""
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -28,6 +29,7 @@ class Scenario:
     b_max: float  # the hardest any other car can brake (m/s^2)
     b_safe: float  # a merge is courteous when nobody brakes harder than this (m/s^2)
     merge_tol: float  # merged once the ego's centre is this close to the target lane's centre (m)
+    predictor_moves: ClassVar[bool] = True  # its worlds can put the others where a predictor says (world=predictor)
 
     def __post_init__(self):
         if self.b_safe > self.b_max:

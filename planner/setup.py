@@ -43,6 +43,9 @@ def setup(cfg: DictConfig):
         raise UserError(f"mpc={cfg.mpc.name} has courtesy rows, which only solver=admm with zstep=sqp solves; use "
                         f"mpc=paper for solver={cfg.solver.name}, zstep={get_object(cfg.zstep._target_).name}")
     scenario = build(cfg.scenario)
+    if cfg.world == "predictor" and not scenario.predictor_moves:
+        raise UserError(f"world=predictor moves the others by the predictor, but scenario={scenario.name}'s cars drive "
+                        "themselves: use world=reactive")
     source = build(cfg.gradients)
     check_window(cfg, source.predictor)
     return scenario, source, settings(cfg, scenario)

@@ -127,6 +127,8 @@ def test_bad_input_is_one_clear_line():
     world = build(job_config("planner", ["scenario=highway"]).scenario).make_world(0)
     with pytest.raises(UserError, match="never yield"):
         world.with_decisions(np.ones(len(world.states()), bool))
+    with pytest.raises(UserError, match=r"^world=predictor moves the others by the predictor, but scenario=highway's cars"):
+        setup(planner_config("highway", ["gradients=cv", "world=predictor"]))  # at set-up, before any step
 
 
 def test_highway_env_missing_names_the_extra():
