@@ -123,3 +123,43 @@ def test_missing_dataset_and_missing_teacher_name_their_commands(tmp_path, tiny_
     with pytest.raises(SystemExit):
         run(job_cfg(tmp_path, tiny_dataset, "predictor._target_=distill.models.load", "source=teacher"))
     assert "run `distill model=teacher`" in capsys.readouterr().err
+
+
+def test_the_baselines_and_the_reaction_split_on_a_constructed_state():
+    """A linear predictor whose others react to the ego: constant velocity's Jacobian (the others blind to the ego)
+    scores reaction error 1 and a d b_i / d Z error equal to the reaction part's share, and that part plus the direct
+    term (the ego's own xy, exact for every source) is the whole d b_i / d Z."""
+    from core.rollout import b_i_jacobian, rollout_jacobian
+    from surrogate.evaluate import gradient_accuracy
+
+    rng = np.random.default_rng(0)
+    T_p, R = 8, 3.95
+    A = rng.normal(0.0, 0.05, (SLOTS * 2, T_OBS * SLOTS * 2))
+    A[:, -SLOTS * 2:] += np.eye(SLOTS * 2)  # each car stays near its last position
+    blind = A.copy()
+    blind[2:, [k for k in range(A.shape[1]) if (k // 2) % SLOTS == 0]] = 0.0  # others ignore every ego column
+    histories = rng.normal(0.0, 3.0, (2, T_OBS, SLOTS, 2))
+    egos = rng.normal(0.0, 3.0, (2, T_p, 2))
+    windows, nexts, J = [], [], []
+    for h, e in zip(histories, egos):
+        seen = []
+        rollout_jacobian(lambda w: seen.append(w[0].copy()) or ((A @ w.reshape(-1)).reshape(1, SLOTS, 2), A[None]), h, e)
+        windows.append(np.stack(seen))
+        nexts.append(np.stack([(A @ w.reshape(-1)).reshape(SLOTS, 2) for w in seen]))
+        J.append(np.broadcast_to(A, (T_p, *A.shape)))
+    windows, nexts, J = map(np.stack, (windows, nexts, J))
+    scores = gradient_accuracy(windows, nexts, J, {"cv": np.broadcast_to(blind, J.shape), "exact": J}, histories, egos, R)
+    assert scores["cv"]["react_rel_err"] == pytest.approx(1.0) and scores["exact"]["react_rel_err"] == pytest.approx(0.0)
+    shares = []
+    for h, e in zip(histories, egos):
+        values, grads = rollout_jacobian(lambda w: ((A @ w.reshape(-1)).reshape(1, SLOTS, 2), A[None]), h, e)
+        whole = b_i_jacobian(values, grads, R)[1]
+        direct = grads.copy()
+        direct[:, 1:] = 0.0  # the others held where the predictor put them
+        gap = values[:, :1] - values[:, 1:]  # (T_p, N, 2)
+        react = -2.0 * np.einsum("tnk,tnkse->ntse", gap, grads[:, 1:])  # by hand: d b_i through the others' reaction
+        react_Z = np.zeros((*react.shape[:3], 4))
+        react_Z[..., :2] = react
+        assert np.allclose(b_i_jacobian(values, direct, R)[1] + react_Z.reshape(whole.shape), whole)
+        shares.append(np.linalg.norm(react_Z) / np.linalg.norm(whole))
+    assert scores["cv"]["grad_rel_err"] == pytest.approx(np.mean(shares)) and 0.05 < np.mean(shares) < 1.0
