@@ -63,7 +63,7 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
         hits = world.step(u) if others == "reactive" else predictor_move(world, seen.history, seen.ids, u, source)
         if any(0 in pair for pair in hits):
             ep.collided = True
-        braking = float(max(0.0, np.max((ep.states[-1][1:, 3] - world.states()[1:, 3]) / world.params.dt, initial=0.0)))
+        braking = float(max(0.0, np.max((z[1:, 3] - world.states()[1:, 3]) / world.params.dt, initial=0.0)))  # m/s^2
         z = world.states()
         u_prev, warm = u, result.plan
         ep.states.append(z)
@@ -73,7 +73,8 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
                         "psi": z[0, 2], "v": z[0, 3], "delta": u[0], "a": u[1], "lane": lane,
                         "in_target": int(lane == target_lane), "iterations": result.iters, "stop_reason": result.reason,
                         "cost": result.J, "F_norm": result.F_norm, "b_min": result.b_min, "slack": result.slack,
-                        "c_min": result.c_min, "brake_max": braking, "fallback": result.fallback, "zstep_stop": result.zstop, "step_ms": step_ms,
+                        "c_min": result.c_min, "brake_max": braking, "fallback": result.fallback,
+                        "zstep_stop": result.zstop, "step_ms": step_ms,
                         "d_min_m": float(np.min(np.hypot(*(z[1:, :2] - z[0, :2]).T)))})
     ep.states = np.array(ep.states)
     ep.controls = np.array(ep.controls).reshape(-1, 2)

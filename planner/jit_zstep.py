@@ -165,7 +165,7 @@ class CompiledSQPZStep:
                 b, Jb = self.safety.linearize(Z, s.reuse_radius)
         return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > s.slack_tol,
                            "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
-                                   "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
+                           "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
 
 
 def compiled(zstep):

@@ -55,8 +55,8 @@ class Safety:
         return self(Z)
 
     def linearize(self, Z, reuse_radius=0.0):
-        """The rows at Z (rows,) and their derivative d / d Z (rows, 4T_p): from the last linearisation while the ego's plan stays within
-        reuse_radius (m) of it (0: only at the same plan), else a new one from the gradient source."""
+        """The rows at Z (rows,) and their derivative d / d Z (rows, 4T_p): from the last linearisation while the ego's
+        plan stays within reuse_radius (m) of it (0: only at the same plan), else a new one from the gradient source."""
         if self.offset(Z) > reuse_radius:
             ego = self.ego_xy(Z).copy()
             self._lin = (ego, *self.jacobian(self.history, ego))

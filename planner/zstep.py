@@ -122,5 +122,5 @@ class SQPZStep:
                 radius = max(0.5 * radius, self.s.min_radius)
         return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
                            "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
-                                     "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
+                           "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
 
