@@ -83,3 +83,22 @@ def test_the_breakdown_puts_each_world_in_one_class_against_the_ceiling():
     counts = breakdown.breakdown(episodes, worlds, 4.0)
     assert counts == {"courteous": (2, 1), "too slow": (1, 1), "forced": (1, 1), "collision": (1, 1),
                       "fallback loop": (1, 1), "ran out of road": (1, 1)}
+
+
+def test_with_a_predictor_that_expects_hard_braking_the_courteous_step_waits_where_the_others_force():
+    """two_lane, world 2,000,000: the analytic predictor made to expect a car to brake hard for an ego cutting in ahead
+    of it (slowdown 0.6: up to 15 m/s^2 at 5 m/s). The courteous step's courtesy rows and its waiting solve keep the
+    ego out of the gap; the paper's step with the same predictor, and the courteous step with cv, force it."""
+    from data import outcomes
+    from planner.setup import drive, planner_config, setup
+
+    def braking(*overrides):
+        cfg = planner_config("two_lane", ["seed=2000000", *overrides])
+        scenario, source, s = setup(cfg)
+        ep = drive(cfg, scenario, source, s, "admm")
+        return outcomes.b_imposed_max(ep.states, scenario.params.dt), scenario
+
+    waits, scenario = braking("gradients=analytic", "predictor.slowdown=0.6", "mpc=courteous")
+    assert waits <= 1.0  # nobody brakes for it: it never took the gap
+    assert braking("gradients=analytic", "predictor.slowdown=0.6")[0] == pytest.approx(scenario.b_max)
+    assert braking("gradients=cv", "mpc=courteous")[0] == pytest.approx(scenario.b_max)
