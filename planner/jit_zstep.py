@@ -9,7 +9,7 @@ from numba import njit
 from core.rollout import ego_xy
 from planner.daqp_qp import INF, SoftQP
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_rollout import b_i_affine, compiled_chain, compiled_jacobian, courtesy_affine
+from planner.jit_rollout import compiled_chain, compiled_jacobian, rows_affine
 from planner.safety import Safety
 from planner.zstep import SQPZStep
 
@@ -23,7 +23,7 @@ class CompiledSafety(Safety):
         self.history = np.ascontiguousarray(self.history)
         self.x_obs = np.ascontiguousarray(self.history[-2:, :, 0])
         self.jacobian = compiled_jacobian(source) or compiled_chain(source) or source.jacobian
-        self._last = None  # (Z, the linearisation, (b_i, d b_i / d Z)) of the last `reused`
+        self._last = None  # (Z, the linearisation, (rows, d rows / d Z)) of the last `reused`
 
     def offset(self, Z):
         """How far (m, largest over the horizon and x, y) the ego's planned xy in Z lie from the last linearisation's."""
@@ -33,12 +33,8 @@ class CompiledSafety(Safety):
         """The rows (b_i, then courtesy) and their d / d Z about the last linearisation (see Safety.reused); the last
         result is kept, since the SQP step linearises an accepted trial plan again."""
         if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
-            ego0, values0, grads = self._lin
-            rows = b_i_affine(Z, ego0, values0, grads, self.R)
-            if self.courtesy:
-                c, Jc = courtesy_affine(Z, ego0, values0, grads, self.x_obs, *self.courtesy)
-                rows = np.concatenate([rows[0], c]), np.concatenate([rows[1], Jc])
-            self._last = (Z, self._lin, rows)
+            dt, b_c = self.courtesy or (1.0, 0.0)  # unread without courtesy rows
+            self._last = (Z, self._lin, rows_affine(Z, *self._lin, self.R, self.x_obs, dt, b_c, bool(self.courtesy)))
         return self._last[2]
 
     def linearize(self, Z, reuse_radius=0.0):

@@ -94,7 +94,7 @@ def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(sta
     values0, grads = jit_rollout.compiled_jacobian(src)(st.obs.history, ego0)
     ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
     Z.reshape(8, 4)[:, :2] = ego
-    b, Jb = jit_rollout.b_i_affine(Z, ego0, values0, grads, R)
+    b, Jb = jit_rollout.rows_affine(Z, ego0, values0, grads, R, st.obs.history[-2:, :, 0].copy(), 0.2, 3.0, False)
     affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
     want = b_i_jacobian(affine(ego), grads, R)
     assert np.abs(b - want[0]).max() < 1e-9 and np.abs(Jb - want[1]).max() < 1e-9
@@ -117,7 +117,9 @@ def test_courtesy_rows_are_the_others_second_differences_and_their_gradient_matc
     ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
     Z.reshape(8, 4)[:, :2] = ego
     affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
-    c, Jc = jit_rollout.courtesy_affine(Z, ego0, values0, grads, hist[-2:, :, 0].copy(), dt, b_c)
+    stacked, J = jit_rollout.rows_affine(Z, ego0, values0, grads, 3.95, hist[-2:, :, 0].copy(), dt, b_c, True)
+    c, Jc = stacked[32:], J[32:]  # after the N*T_p = 32 b_i rows, which stay b_i_jacobian's
+    assert np.abs(stacked[:32] - b_i_jacobian(affine(ego), grads, 3.95)[0]).max() < 1e-9
     want = courtesy_jacobian(affine(ego), grads, hist, dt, b_c)
     assert np.abs(c - want[0]).max() < 1e-9 and np.abs(Jc - want[1]).max() < 1e-9
     h = 1e-6
