@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
+from scipy import linalg
 
 from core.jobs import UserError
 from core.rollout import accelerations, b_i, ego_xy
@@ -81,6 +82,7 @@ class StepResult(NamedTuple):
     fallback: str  # "" when the solver's plan was applied
     zstop: str = ""  # why the last Z-update stopped, where its solver says (PyGranso's termination)
     c_min: float = np.nan  # the plan's smallest courtesy row a_i + b_c (m/s^2), where the Z-step has them
+    braking: float = np.nan  # the hardest braking of another car (m/s^2) the predictor expects under the plan's rollout
 
 
 def simulate(z0, Delta, alpha, params):
@@ -188,15 +190,20 @@ def rollout(s: Settings, obs: Observation, source, Delta, alpha):
     return Z, compiled(obs.history, ego)[0] if compiled else source.values(obs.history, ego[None])[0]
 
 
+def checked_b(s: Settings, values) -> float:
+    """min b_i (m^2) over the first check_steps of a rollout's predictor values (T_p, SLOTS, 2)."""
+    return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf))
+
+
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
     """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
     Z, values = rollout(s, obs, source, Delta, alpha)
-    return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf)), Z
+    return checked_b(s, values), Z
 
 
-def imposed(s: Settings, obs: Observation, source, Delta, alpha):
-    """The hardest braking (m/s^2, >= 0) the predictor expects of another car over the nonlinear rollout of the plan."""
-    values = rollout(s, obs, source, Delta, alpha)[1]
+def imposed(s: Settings, obs: Observation, values) -> float:
+    """The hardest braking (m/s^2, >= 0) the predictor expects of another car, from its values (T_p, SLOTS, 2) over a
+    plan's rollout."""
     return float(max(0.0, -accelerations(values, obs.history, s.params.dt).min(initial=0.0)))
 
 
@@ -221,18 +228,18 @@ def brake_plan(s: Settings, z0):
 
 def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):
     """The plan st with its controls repaired (planner.repair) until its checked rollout is acceptable, at most
-    s.repair_iters steps, with its min b_i (m^2); None when no repair passes the check."""
+    s.repair_iters steps, with its min b_i (m^2) and the predictor's values under it; None when no repair passes."""
     Phi_1, Phi_2, _ = costs(s, obs.u_prev)
-    W = np.block([[Phi_1.P, np.zeros_like(Phi_1.P)], [np.zeros_like(Phi_2.P), Phi_2.P]])
+    W = linalg.block_diag(Phi_1.P, Phi_2.P)
     Delta, alpha = st.Delta, st.alpha
     for _ in range(s.repair_iters):
         Z = simulate(obs.z0, Delta, alpha, s.params)
         b, Jb = safety.linearize(Z)
         Delta, alpha = repair.repair_step(obs.z0, Delta, alpha, Z, b[:safety.n_b], Jb[:safety.n_b], s.params, W,
                                           s.delta_box, s.a_box, s.check_steps, s.repair_margin, s.osqp)
-        b_min, Z = plan_safe(s, obs, source, Delta, alpha)
-        if acceptable(s, obs, source, b_min):
-            return st._replace(Delta=Delta, alpha=alpha, Z=Z, zstate=None), b_min
+        Z, values = rollout(s, obs, source, Delta, alpha)
+        if acceptable(s, obs, source, checked_b(s, values)):
+            return st._replace(Delta=Delta, alpha=alpha, Z=Z, zstate=None), checked_b(s, values), values
     return None
 
 
@@ -266,7 +273,8 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
     st, solve = (jit_admm if s.core == "compiled" else admm).admm_solve(prob, solvers, start, *s.admm)
     if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
         return None, "non-finite iterate"
-    b_min, reason = min(plan_safe(s, obs, source, st.Delta, st.alpha)[0], solve.zinfo.get("b_min", np.inf)), solve.reason
+    values = rollout(s, obs, source, st.Delta, st.alpha)[1]
+    b_min, reason = min(checked_b(s, values), solve.zinfo.get("b_min", np.inf)), solve.reason
     if not acceptable(s, obs, source, b_min):
         why = "infeasible linearisation" if solve.zinfo.get("infeasible") else "unsafe plan"
         try:
@@ -275,19 +283,19 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
             why, fixed = f"{why}, repair failed ({e})", None
         if fixed is None:
             return None, f"{why} (min b_i {b_min:.2f} m^2)"
-        (st, b_min), reason = fixed, f"{reason}, repaired"
+        (st, b_min, values), reason = fixed, f"{reason}, repaired"
     return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=prob.J(st), iters=solve.iters, reason=reason,
                       F_norm=solve.F_norm, b_min=b_min, slack=solve.zinfo.get("slack", 0.0), fallback="",
-                      zstop=solve.zinfo.get("termination_reason", ""), c_min=solve.zinfo.get("c_min", np.nan)), ""
+                      zstop=solve.zinfo.get("termination_reason", ""), c_min=solve.zinfo.get("c_min", np.nan),
+                      braking=imposed(s, obs, values)), ""
 
 
-def choose(s: Settings, obs: Observation, source, plans):
+def choose(s: Settings, plans):
     """The plan to apply among solved (name, StepResult): with several, the least predicted braking above b_courtesy
     (m/s^2; without courtesy rows, b_safe is not the planner's to judge: none), then the lowest cost J."""
     if len(plans) == 1:
         return plans[0]
-    excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, imposed(s, obs, source, r.plan.Delta, r.plan.alpha)
-                                                             - s.b_courtesy)
+    excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy)
     return min(plans, key=lambda p: (excess(p[1]), p[1].J))
 
 
@@ -319,5 +327,5 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
             return fallback(s, obs, source, warm, why)
         except Exception:  # the predictor cannot judge the shifted plan either: brake in lane
             return fallback(s, obs, source, None, why)
-    name, result = choose(s, obs, source, plans)
+    name, result = choose(s, plans)
     return result if len(plans) == 1 and not s.starts else result._replace(reason=f"{result.reason}, from {name}")

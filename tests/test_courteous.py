@@ -25,7 +25,7 @@ def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_lea
     Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
     b_min, Z = mpc.plan_safe(s, obs, source, Delta, alpha)
     assert -0.5 < b_min < -s.check_tol  # R = 3.95 m: 0.5 m^2 is 6 cm
-    fixed, b_fixed = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p),
+    fixed, b_fixed, _ = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p),
                                   admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
     assert b_fixed == pytest.approx(mpc.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
     assert b_fixed >= s.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
@@ -36,22 +36,21 @@ def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_lea
     assert out[1] == pytest.approx(b_safe, abs=1e-6) and np.allclose(out[0].Delta, safe, atol=1e-6)
 
 
-def test_the_choice_puts_predicted_excess_braking_before_cost(beside, monkeypatch):
-    s, source, obs = beside
-    plan = lambda J, braking: mpc.StepResult(np.zeros(2), admm.ADMMState(np.full(s.T_p, braking), np.zeros(s.T_p), None,
-                                                                         None), J, 1, "converged", 0.0, 0.0, 0.0, "")
-    monkeypatch.setattr(mpc, "imposed", lambda s, obs, source, Delta, alpha: float(Delta[0]))  # predicted braking m/s^2
-    forcing, waiting, gentle = plan(1.0, 9.0), plan(5.0, 0.5), plan(4.0, 2.9)
-    assert mpc.choose(s, obs, source, [("force", forcing), ("wait", waiting)])[0] == "wait"
-    assert mpc.choose(s, obs, source, [("wait", waiting), ("gentle", gentle)])[0] == "gentle"  # both under b_courtesy: J
-    assert mpc.choose(s, obs, source, [("force", forcing), ("worse", plan(0.5, 9.5))])[0] == "force"
-    assert mpc.choose(s, obs, source, [("only", forcing)])[0] == "only"
+def test_the_choice_puts_predicted_excess_braking_before_cost(beside):
+    s = beside[0]
+    plan = lambda J, braking: mpc.StepResult(np.zeros(2), None, J, 1, "converged", 0.0, 0.0, 0.0, "", braking=braking)
+    forcing, waiting, gentle = plan(1.0, 9.0), plan(5.0, 0.5), plan(4.0, 2.9)  # predicted braking m/s^2
+    assert mpc.choose(s, [("force", forcing), ("wait", waiting)])[0] == "wait"
+    assert mpc.choose(s, [("wait", waiting), ("gentle", gentle)])[0] == "gentle"  # both under b_courtesy: J
+    assert mpc.choose(s, [("force", forcing), ("worse", plan(0.5, 9.5))])[0] == "force"
+    assert mpc.choose(s, [("only", forcing)])[0] == "only"
 
 
 def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(beside):
     s, source, obs = beside
     step = mpc.mpc_step(s, obs, source, None, _sqp())
     assert step.fallback == "" and ", from " in step.reason and step.c_min >= 0.0  # cv predicts no braking at all
+    assert step.braking == 0.0
     paper = make("two_lane", ["gradients=cv"])[2]
     assert paper.b_courtesy is None and paper.repair_iters == 0 and not paper.starts
     assert "from" not in mpc.mpc_step(paper, obs, source, None, _sqp()).reason
