@@ -174,8 +174,7 @@ def read_episodes(folder: Path, method: str) -> list[dict]:
 
 def read_ceiling(work: Path, scenario: str) -> list[dict]:
     """The ceiling's per-world rows of `scenario` (bench/ceiling.py's CSV) as {column: float}, its policy names left out."""
-    with open(work / "ceiling" / f"ceiling_{scenario}.csv") as f:
-        return [{k: float(v) for k, v in r.items() if not k.endswith("_policy")} for r in csv.DictReader(f)]
+    return breakdown.read(work / "ceiling" / f"ceiling_{scenario}.csv")
 
 
 def ceiling_row(r: dict, worlds: list[dict], search: str, resamples: int, rng) -> dict:

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from data import outcomes
 from data.perception import observe
 from data.protocol import World
 from data.world import overlap
@@ -63,7 +64,7 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
         hits = world.step(u) if others == "reactive" else predictor_move(world, seen.history, seen.ids, u, source)
         if any(0 in pair for pair in hits):
             ep.collided = True
-        braking = float(max(0.0, np.max((z[1:, 3] - world.states()[1:, 3]) / world.params.dt, initial=0.0)))  # m/s^2
+        braking = outcomes.b_imposed_max([z, world.states()], world.params.dt)  # this step's, m/s^2
         z = world.states()
         u_prev, warm = u, result.plan
         ep.states.append(z)
