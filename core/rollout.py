@@ -78,22 +78,25 @@ def ego_xy(Z, T_p):
     return Z.reshape(T_p, 4)[:, :2]
 
 
-def b_i(values, R):
-    """d_i (N, T_p) in m^2: squared centre distance ego-to-car minus R^2, R = r + r_i + eps (m); values (T_p, SLOTS, 2)."""
-    gap = values[:, :1] - values[:, 1:]
-    return (gap**2).sum(-1).T - R**2  # numpy or torch alike: PyGranso back-propagates through it
+def b_i(values, R, stretch=1.0):
+    """d_i (N, T_p) in m^2: (dx / stretch)^2 + dy^2 - R^2 between the ego's and car i's centres, R = r + r_i + eps (m);
+    values (T_p, SLOTS, 2). At stretch 1 the paper's circle, eq. (6); above 1 an ellipse stretch * R long along the road,
+    for bodies longer than they are wide."""
+    sq = (values[:, :1] - values[:, 1:]) ** 2
+    return (sq[..., 0] / stretch**2 + sq[..., 1]).T - R**2  # numpy or torch alike: PyGranso back-propagates through it
 
 
-def b_i_jacobian(values, grads, R):
+def b_i_jacobian(values, grads, R, stretch=1.0):
     """b_i (N*T_p,) and d b_i / d Z (N*T_p, 4T_p), from rollout values (T_p, SLOTS, 2) and d values / d ego xy (T_p, SLOTS, 2, T_p, 2)."""
     T_p = len(values)
+    w = np.array([1.0 / stretch**2, 1.0])  # d b_i / d gap = 2 w gap
     gap = values[:, :1] - values[:, 1:]  # (T_p, N, 2)
     dgap = grads[:, :1] - grads[:, 1:]  # (T_p, N, 2, T_p, 2)
-    db = 2.0 * np.einsum("tnk,tnkse->ntse", gap, dgap)  # (N, T_p, T_p, 2): d b_i(t) / d ego xy(s)
+    db = 2.0 * np.einsum("tnk,tnkse->ntse", gap * w, dgap)  # (N, T_p, T_p, 2): d b_i(t) / d ego xy(s)
     n = db.shape[0]
     dZ = np.zeros((n, T_p, T_p, 4))
     dZ[..., :2] = db  # b depends on Z only through the ego's x, y
-    return b_i(values, R).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
+    return b_i(values, R, stretch).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
 
 
 def accelerations(values, history, dt):

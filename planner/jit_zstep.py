@@ -18,8 +18,8 @@ class CompiledSafety(Safety):
     """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts (other
     Python-side local Jacobians composed by the compiled chain rule)."""
 
-    def __init__(self, source, history, R, T_p, courtesy=None):
-        super().__init__(source, history, R, T_p, courtesy)
+    def __init__(self, source, history, R, T_p, courtesy=None, stretch=1.0):
+        super().__init__(source, history, R, T_p, courtesy, stretch)
         self.history = np.ascontiguousarray(self.history)
         self.x_obs = np.ascontiguousarray(self.history[-2:, :, 0])
         self.jacobian = compiled_jacobian(source) or compiled_chain(source) or source.jacobian
@@ -34,7 +34,7 @@ class CompiledSafety(Safety):
         result is kept, since the SQP step linearises an accepted trial plan again."""
         if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
             dt, b_c = self.courtesy or (1.0, 0.0)  # unread without courtesy rows
-            self._last = (Z, self._lin, rows_affine(Z, *self._lin, self.R, self.x_obs, dt, b_c, bool(self.courtesy)))
+            self._last = (Z, self._lin, rows_affine(Z, *self._lin, self.R, self.stretch, self.x_obs, dt, b_c, bool(self.courtesy)))
         return self._last[2]
 
     def linearize(self, Z, reuse_radius=0.0):

@@ -36,6 +36,7 @@ class Settings:
     r: float  # ego's safety radius (m)
     r_i: float  # the others' safety radius (m)
     eps: float  # safety margin (m)
+    stretch: float  # the safety ellipse's along-road semi-axis over R (core.rollout.b_i); 1: the paper's circle
     b_courtesy: float | None  # courtesy rows: nobody predicted to brake harder than this (m/s^2); None: none (the paper)
     delta_box: tuple  # rad
     a_box: tuple  # m/s^2
@@ -165,10 +166,10 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
     prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box),
                         tuple(s.a_box), lo, hi)
     if s.core == "compiled":
-        safety = CompiledSafety(source, obs.history, s.R, s.T_p, courtesy(s))
+        safety = CompiledSafety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch)
         solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp)
     else:
-        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p, courtesy(s)), s.osqp)
+        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch), s.osqp)
     return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
 
 
@@ -192,7 +193,7 @@ def rollout(s: Settings, obs: Observation, source, Delta, alpha):
 
 def checked_b(s: Settings, values) -> float:
     """min b_i (m^2) over the first check_steps of a rollout's predictor values (T_p, SLOTS, 2)."""
-    return float(b_i(values, s.R)[:, :s.check_steps].min(initial=np.inf))
+    return float(b_i(values, s.R, s.stretch)[:, :s.check_steps].min(initial=np.inf))
 
 
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):

@@ -149,3 +149,22 @@ def test_an_episode_renders_as_a_gif_by_highway_envs_renderer(tmp_path):
     path = scenario.render(3, states, tmp_path / "run.gif")
     with Image.open(path) as gif:
         assert gif.n_frames == 3 and gif.size == (900, 180)
+
+
+def test_the_planners_safety_ellipse_keeps_highway_bodies_apart_and_the_circle_would_not():
+    """Sampled pairs of 5 m x 2 m bodies (the ego's heading anywhere in mpc.psi_box, the other's along the road): every
+    overlapping pair has b_i < 0 with the highway scenario's shape; with the paper's circle some do not."""
+    from core.rollout import b_i
+    from data.world import overlap
+
+    sc, _, s = setup(planner_config("highway", ["gradients=cv"]))
+    assert s.stretch == pytest.approx(1.77) and setup(planner_config("two_lane", ["gradients=cv"]))[2].stretch == 1.0
+    rng = np.random.default_rng(0)
+    n = 20000
+    ego = np.column_stack([rng.uniform(-9, 9, n), rng.uniform(-4.5, 4.5, n), rng.uniform(*s.psi_box, n), np.ones(n)])
+    hits = np.array([overlap(z, np.array([0.0, 0.0, 0.0, 1.0]), sc.road) for z in ego])
+    values = np.zeros((n, 2, 2))
+    values[:, 0] = ego[:, :2]  # (T_p = n, SLOTS = 2, 2): one pair per "step"
+    assert hits.sum() > 1000
+    assert (b_i(values, s.R, s.stretch)[0][hits] < 0).all()
+    assert (b_i(values, s.R)[0][hits] >= 0).any()
