@@ -268,7 +268,9 @@ def ceiling(scenario, cfg, seed: int) -> dict:
     world shows with the ego held in its lane."""
     world = scenario.make_world(seed)
     true = search_world(world, scenario, cfg)
-    stubborn = search_world(world.with_decisions(np.zeros(len(world.states()), bool)), scenario, cfg)
+    nobody = np.zeros(len(world.states()), bool)
+    # where nobody yields (every highway-env world) the stubborn world is the true one: its search would repeat this one
+    stubborn = true if not world.decisions().any() else search_world(world.with_decisions(nobody), scenario, cfg)
     return {"seed": seed, "ceiling_courteous": float(true.courteous), "ceiling_t_merge": float(true.t_merge),
             "ceiling_b_imposed": true.b_imposed, "ceiling_policy": true.policy,
             "never_yield_courteous": float(stubborn.courteous), "never_yield_t_merge": float(stubborn.t_merge),

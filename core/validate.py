@@ -364,5 +364,12 @@ CEILING = {
     "search.y_wait": ListOf(Real(), at_least=1), "search.accept_dv": ListOf(Real()),
 }
 
+CROSS_WORLD = {
+    "worlds": ListOf(OneOf(tuple(options("scenario"))), at_least=1),
+    **{k: OVERRIDES for k in ("teacher", "student", "surrogate", "planner", "ceiling")},
+    "sources": ListOf(GRADIENT_OPTIONS, at_least=1), "nnmpc": ListOf(GRADIENT_OPTIONS), "seed": SEED, "n_jobs": N_JOBS,
+    "bootstrap.resamples": Int(1), "bootstrap.seed": SEED, "out_dir": Text(), "work_dir": Text(),
+}
+
 SCHEMAS = {"make_dataset": MAKE_DATASET, "distill": DISTILL, "surrogate": SURROGATE, "planner": PLANNER, "results": RESULTS,
-           "compare": COMPARE, "bench": BENCH, "ceiling": CEILING}
+           "compare": COMPARE, "bench": BENCH, "ceiling": CEILING, "cross_world": CROSS_WORLD}
