@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-zstep interaction batch ceiling results results-full clean
+.PHONY: demo test bench bench-zstep interaction batch ceiling results results-full cross-world clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -61,6 +61,13 @@ results: $(STAMP)
 
 results-full: $(STAMP)
 	$(BIN)/results results_preset=full
+
+# Models trained in one world tested in the other, ours (dense) and highway-env's: each world's dataset and models at demo
+# size, then in both worlds the ceiling and the planner with cv and each world's student and surrogate (ADMM, and NNMPC
+# for the student): results/cross-world.md. About 2 hours on 2 cores; `cross-world models.dense=models data.dense=data/small`
+# reuses make demo's models for our world.
+cross-world: $(STAMP)
+	$(BIN)/cross-world
 
 clean:
 	rm -rf outputs multirun mlflow.db mlruns models data/small data/large results/*/
