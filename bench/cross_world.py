@@ -193,7 +193,7 @@ def hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Entry point of the `cross-world` console script: overrides checked first (one line for a misspelt key)."""
-    console("cross-world", hydra_main)
+    console("cross_world", hydra_main)
 
 
 if __name__ == "__main__":
