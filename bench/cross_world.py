@@ -11,6 +11,7 @@ intervals as `results`: Wilson for rates, bootstrap over episodes for means) and
 
     cross-world [episodes.highway=200] [models.dense=models] [n_jobs=-1]
 """
+import itertools
 import logging
 from pathlib import Path
 
@@ -128,19 +129,17 @@ def world_table(cfg, out: dict, batches: dict, work: Path, test: str, rng) -> tu
 
 
 def verdicts(rows: dict, test: str, cfg) -> list[str]:
-    """Plain sentences for each model whose courteous or collision rate in `test` differs between its two trainings with
+    """Plain sentences for each model whose courteous or collision rate in `test` differs between its trainings with
     intervals that do not overlap."""
     lines = []
-    for source in cfg.sources:
-        for m in ("admm", "nnmpc"):
-            here, there = rows.get((label(source, test), m)), [rows.get((label(source, w), m)) for w in cfg.worlds if w != test]
-            for other, r in zip([w for w in cfg.worlds if w != test], there):
-                if here is None or r is None:
-                    continue
-                for key, what in (("courteous", "courteous merges"), ("collision", "collisions")):
-                    if r[f"{key}_hi"] < here[f"{key}_lo"] or here[f"{key}_hi"] < r[f"{key}_lo"]:
-                        lines.append(f"- In {test}, {source} ({m.upper()}) trained in {other} makes {pct(r, key)}% "
-                                     f"{what} against {pct(here, key)}% trained in {test}: the intervals do not overlap.")
+    for source, m in itertools.product(cfg.sources, ("admm", "nnmpc")):
+        here = rows.get((label(source, test), m))  # None for an untrained source or a method not run
+        for other in (w for w in cfg.worlds if w != test and here is not None):
+            r = rows[label(source, other), m]
+            for key, what in (("courteous", "courteous merges"), ("collision", "collisions")):
+                if r[f"{key}_hi"] < here[f"{key}_lo"] or here[f"{key}_hi"] < r[f"{key}_lo"]:
+                    lines.append(f"- In {test}, {source} ({m.upper()}) trained in {other}: {pct(r, key)}% {what}, "
+                                 f"against {pct(here, key)}% trained in {test}; the intervals do not overlap.")
     return lines or [f"- In {test}, no model's courteous-merge or collision rate differs between its trainings with "
                      "intervals that do not overlap."]
 

@@ -48,3 +48,16 @@ def test_bad_settings_are_one_line(override, message, tmp_path, capsys):
         cross_world.run(compose_cfg("cross_world", [override, f"out_dir={tmp_path}", f"work_dir={tmp_path / 'w'}"]))
     err = capsys.readouterr().err
     assert e.value.code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_verdicts_name_the_model_whose_rates_differ_between_its_trainings():
+    cfg = compose_cfg("cross_world", ["sources=[cv,student]"])
+    row = lambda c, lo, hi: {"courteous": c, "courteous_lo": lo, "courteous_hi": hi, "collision": 0.0, "collision_lo": 0.0,
+                             "collision_hi": 0.1}
+    rows = {("cv", "admm"): row(0.1, 0.0, 0.2), ("student, trained in highway", "admm"): row(0.6, 0.5, 0.7),
+            ("student, trained in dense", "admm"): row(0.2, 0.1, 0.3)}
+    lines = cross_world.verdicts(rows, "highway", cfg)
+    assert lines == ["- In highway, student (ADMM) trained in dense: 20.0 [10.0, 30.0]% courteous merges, against "
+                     "60.0 [50.0, 70.0]% trained in highway; the intervals do not overlap."]
+    rows["student, trained in dense", "admm"] = row(0.45, 0.35, 0.55)
+    assert "no model's" in cross_world.verdicts(rows, "highway", cfg)[0]
