@@ -44,8 +44,8 @@ log = logging.getLogger(__name__)
 TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
 METHODS = ("admm", "nnmpc")
 MODELS = ("cv", "teacher", "student")  # predictors of the accuracy table; cv from the cv_* metrics of the teacher's runs
-GRADIENT_ROWS = {"surrogate": "", "constant velocity (baseline)": "_cv", "mean Jacobian (baseline)": "_mean"}  # the
-# surrogate job's metrics per row: grad_rel_err, grad_rel_err_cv, grad_rel_err_mean, ...
+GRADIENT_ROWS = {"surrogate": "", "student": "_student", "constant velocity (baseline)": "_cv",
+                 "mean Jacobian (baseline)": "_mean"}  # the surrogate job's metrics per row: grad_rel_err, grad_rel_err_student, ...
 SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling"}  # the ceiling's two searches and their row names
 
 
@@ -428,15 +428,14 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
                       [[m, *(mm(acc[m][k]) for k in ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_rollout_m_yield"))]
                        for m in MODELS])
     grads = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err")
-    rows = {name: over_trainings([{k: out[f"surrogate seed {s}"][k + suffix] for k in grads} for s in seeds], grads)
+    rows = {name: over_trainings([{k: out[f"surrogate seed {s}"].get(k + suffix, np.nan) for k in grads} for s in seeds], grads)
             for name, suffix in GRADIENT_ROWS.items()}
-    stu = over_trainings(d["student"], ("jac_rel_err",))
+    rows["student"]["jac_rel_err"] = over_trainings(d["student"], ("jac_rel_err",))["jac_rel_err"]  # its distill run's
     lines += ["## Gradients", "", "Against teacher autodiff on held-out planning states, beside the trivial baselines: "
               "constant velocity's Jacobian and the training set's mean Jacobian. The reaction part is the others' "
               "d p_i / dZ, where predicting no reaction scores 1.", ""]
     lines += markdown(["source", "local Jacobian rel. error", "d b_i/dZ cosine", "d b_i/dZ rel. error", "reaction rel. error"],
-                      [[name, *(fmt(r[k][0], ".3f", *r[k][1:]) for k in grads)] for name, r in rows.items()]
-                      + [["student", fmt(stu["jac_rel_err"][0], ".3f", *stu["jac_rel_err"][1:]), "-", "-", "-"]])
+                      [[name, *(fmt(r[k][0], ".3f", *r[k][1:]) for k in grads)] for name, r in rows.items()])
     inter_runs = {}
     for k in seeds:
         for source, m in out[f"evaluate-interaction seed {k}"].items():

@@ -27,7 +27,10 @@ from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, console, guarde
 from planner.gradients import predictor_of
 
 log = logging.getLogger(__name__)
-ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", "grad_cosine", "grad_rel_err"]
+GRADIENT = ["grad_cosine", "grad_rel_err", "grad_rel_err_lo", "grad_rel_err_hi", "react_rel_err"]  # d b_i/dZ against teacher
+# autodiff on the surrogate job's held-out planning states, with the whole gradient's 95% interval and the reaction part's
+ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
+BASELINES = {"cv": "_cv", "mean Jacobian": "_mean"}  # the trivial gradient sources every row is shown against
 MEANS = ("t_merge", "C_max", "admm_iters_mean", "fallbacks", "b_imposed_max")  # episode-weighted over the pooled runs
 INTERACTION = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac"]
 
@@ -46,9 +49,17 @@ def metrics_of(run: pd.Series | None, keys, prefix: str = "") -> dict:
     return {k: np.nan if run is None else run.get(f"metrics.{prefix}{k}", np.nan) for k in keys}
 
 
+def gradient_error(run: pd.Series | None, suffix: str) -> dict:
+    """GRADIENT's columns of the source that the surrogate job logged with `suffix` ("" the surrogate, "_cv", "_mean",
+    "_student"): grad_rel_err<suffix>, its interval grad_rel_err<suffix>_lo and _hi, ...; NaN where absent."""
+    name = lambda k: k.replace("grad_rel_err_", f"grad_rel_err{suffix}_") if k.endswith(("_lo", "_hi")) else k + suffix
+    return {k: np.nan if run is None else run.get(f"metrics.{name(k)}", np.nan) for k in GRADIENT}
+
+
 def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame,
              interaction_runs: pd.DataFrame) -> dict:
-    """Accuracy columns of a row: its predictor's ADE (m), its gradient's error against teacher autodiff, the source's
+    """Accuracy columns of a row: its predictor's ADE (m), its gradient's error against teacher autodiff beside the
+    trivial baselines' on the same states (grad_rel_err_cv, grad_rel_err_mean, react_rel_err_mean), the source's
     interaction scores."""
     row = {k: np.nan for k in ACCURACY}
     if predictor in validate.TRAINED_PREDICTORS:  # a model with a `distill` run of its own
@@ -57,8 +68,14 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
         row.update(metrics_of(latest(distill_runs, "model", "teacher"), ("ade_1step_m", "ade_rollout_m"), "cv_"))
     if gradients == "student":  # the student's Jacobian against the teacher's, measured by its distill run
         row.update(metrics_of(latest(distill_runs, "model", "student"), ("jac_rel_err",)))
+    scored = latest(surrogate_runs, "source", "teacher")  # the surrogate job scores each source's d b_i/dZ on its states
     if gradients == "surrogate":
-        row.update(metrics_of(latest(surrogate_runs, "source", "teacher"), ("jac_rel_err", "grad_cosine", "grad_rel_err")))
+        row.update(metrics_of(scored, ("jac_rel_err",)))
+    suffix = {"surrogate": "", "student": "_student", "cv": "_cv"}.get(gradients)
+    if suffix is not None:
+        row.update(gradient_error(scored, suffix))
+    for s in BASELINES.values():
+        row.update({f"{k}{s}": v for k, v in gradient_error(scored, s).items() if k in ("grad_rel_err", "react_rel_err")})
     row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
 
@@ -124,8 +141,9 @@ def label(r: pd.Series, varying) -> str:
 
 
 def plot(df: pd.DataFrame, path: Path, group_by=()):
-    """Three panels against median MPC step time, one marker per row with a legend: gradient error (1 - cosine of
-    d b_i/dZ), merge rate with its 95% Wilson interval, interaction fidelity of the gradient (react_corr_jac)."""
+    """Three panels against median MPC step time, one marker per row with a legend: gradient error (relative error of
+    d b_i/dZ against teacher autodiff, 95% interval, the trivial baselines as lines), courteous-merge rate with its 95%
+    Wilson interval, interaction fidelity of the gradient (react_corr_jac)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -139,15 +157,21 @@ def plot(df: pd.DataFrame, path: Path, group_by=()):
     for i, (_, r) in enumerate(df.iterrows()):
         style = dict(color=cmap(i % cmap.N), marker=markers[i % len(markers)], ms=7, ls="none")
         x = r["step_ms_median"]
-        err = 1.0 - r["grad_cosine"]
+        err = r["grad_rel_err"]
         if np.isfinite(err):
-            axes[0].plot(x, max(err, 1e-6), **style)
+            bar = [[err - r["grad_rel_err_lo"]], [r["grad_rel_err_hi"] - err]]
+            axes[0].errorbar(x, err, yerr=bar if np.isfinite(r["grad_rel_err_lo"]) else None, capsize=4, **style)
         yerr = [[r["courteous_rate"] - r["courteous_lo"]], [r["courteous_hi"] - r["courteous_rate"]]]
         h = axes[1].errorbar(x, r["courteous_rate"], yerr=yerr if np.isfinite(r["courteous_lo"]) else None, capsize=4, **style)
         if np.isfinite(r["react_corr_jac"]):
             axes[2].plot(x, r["react_corr_jac"], **style)
         handles.append((h, f"{label(r, varying)}: {r['n_episodes']} ep, {r['n_runs']} run{'s' * (r['n_runs'] > 1)}"))
-    axes[0].set(xscale="log", yscale="log", ylabel="1 - cos(d b_i/dZ, teacher autodiff)", title="gradient error vs speed")
+    for (name, s), ls in zip(BASELINES.items(), ("--", ":")):
+        level = df[f"grad_rel_err{s}"].dropna()
+        if len(level):
+            axes[0].axhline(level.iloc[0], color="k", ls=ls, lw=1, label=f"{name} (baseline)")
+            axes[0].legend(fontsize=8)
+    axes[0].set(xscale="log", ylabel="rel. error of d b_i/dZ vs teacher autodiff", title="gradient error vs speed")
     axes[1].set(xscale="log", ylabel="courteous-merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
     axes[2].set(xscale="log", ylabel="react_corr_jac (first-order response vs true)", ylim=(-1.05, 1.05),
                 title="interaction fidelity vs speed")
@@ -174,8 +198,8 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
 
 
 SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi", "merged_rate", "collision_rate", "t_merge",
-         "b_imposed_max", "d_min_m", "fallbacks",
-         "step_ms_median", "ade_rollout_m", "grad_cosine", "react_corr", "react_corr_jac", "runs"]
+         "b_imposed_max", "d_min_m", "fallbacks", "step_ms_median", "ade_rollout_m", "grad_rel_err", "grad_rel_err_cv",
+         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
 
 
 @guarded

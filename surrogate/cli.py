@@ -64,6 +64,16 @@ def time_autodiff(cfg, window):
     return out
 
 
+def student_jacobian(cfg, W) -> dict:
+    """{"_student": the distilled student's local Jacobians on windows W} when models_dir holds one, so that its d b_i / dZ
+    is scored on the same planning states as the surrogate's; {} otherwise."""
+    try:
+        student = instantiate_user(cfg.predictor, name="student")
+    except UserError:
+        return {}
+    return {"_student": student.phi_jac(W)[1]} if cfg.source != "student" else {}
+
+
 @guarded
 def run(cfg: DictConfig) -> dict:
     """Check every input, make the data, train, export, evaluate; models/surrogate.onnx is replaced only when all succeeded.
@@ -107,10 +117,11 @@ def run(cfg: DictConfig) -> dict:
 
         R = cfg.paper.safety.r + cfg.paper.safety.r_i + cfg.paper.safety.eps
         n = len(history)
+        J_hats = {"": J_hat, "_mean": J_mean, "_cv": J_cv, **student_jacobian(cfg, W)}
         scores = evaluate.gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J),
-                                            {"": per_state(n, J_hat), "_mean": per_state(n, J_mean), "_cv": per_state(n, J_cv)},
-                                            history, ego_future, R)
-        metrics.update({f"{k}{suffix}": v for suffix, s in scores.items() for k, v in s.items()})
+                                            {k: per_state(n, v) for k, v in J_hats.items()}, history, ego_future, R)
+        metrics.update({f"{k}{suffix}{e}": x for suffix, s in scores.items() for k, v in s.items()
+                        for e, x in zip(("", "_lo", "_hi"), v)})
 
         window = test[:1]
         metrics["forward_us"] = time_us(surrogate.jac, window, cfg.timing.repeats, cfg.timing.budget_s)

@@ -6,6 +6,7 @@ figures isolate what the predictor contributes, d p_i / d Z of the other cars.
 """
 import numpy as np
 
+from core import stats
 from core.rollout import b_i_jacobian, rollout_jacobian
 
 
@@ -39,7 +40,8 @@ def relative(a, b):
 
 
 def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R):
-    """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err, means over the states.
+    """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err, each (mean, lo, hi) over the
+    states (Student-t 95% interval).
 
     windows (n, T_p, T_obs, SLOTS, 2), nexts (n, T_p, SLOTS, 2) and the exact J (n, T_p, SLOTS*2, T_obs*SLOTS*2) are the source's on the
     windows its rollout visits; each of J_hats {name: (n, T_p, SLOTS*2, T_obs*SLOTS*2)} replaces J in the same rollout.
@@ -54,5 +56,5 @@ def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R
             s["grad_rel_err"].append(relative(G_hat, G))
             s["react_cosine"].append(cosine(react_hat, react))
             s["react_rel_err"].append(relative(react_hat, react))
-    return {name: {k: float(np.mean(v)) for k, v in s.items()} for name, s in scores.items()}
+    return {name: {k: stats.mean_ci(v) for k, v in s.items()} for name, s in scores.items()}
 

@@ -35,7 +35,9 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, caplog):
                                                       "t_merge": 8, "C_max": 55, "d_min_m": 4.2})
     log("distill", {"model": "teacher"}, {"ade_1step_m": 0.9, "ade_rollout_m": 9.0})
     log("distill", {"model": "teacher"}, {"ade_1step_m": 0.1, "ade_rollout_m": 0.5})
-    log("surrogate", {"source": "teacher"}, {"grad_cosine": 0.97, "grad_rel_err": 0.2, "jac_rel_err": 0.3})
+    log("surrogate", {"source": "teacher"}, {"grad_cosine": 0.97, "grad_rel_err": 0.2, "grad_rel_err_lo": 0.15,
+                                             "grad_rel_err_hi": 0.25, "jac_rel_err": 0.3, "grad_rel_err_cv": 0.34,
+                                             "grad_rel_err_mean": 0.35, "react_rel_err": 0.6, "react_rel_err_mean": 1.1})
     df = run(compose_cfg("compare", [f"out_dir={store}"]))
     assert list(df["gradients"]) == ["surrogate", "teacher"]
     s = df.iloc[0]
@@ -46,13 +48,15 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, caplog):
     assert s["step_ms_median"] == pytest.approx(np.median([10.0, 30.0, 20.0, 40.0]))
     assert s["d_min_m"] == pytest.approx(3.9)
     assert s["grad_cosine"] == 0.97 and s["ade_1step_m"] == 0.1
+    assert (s["grad_rel_err"], s["grad_rel_err_lo"], s["grad_rel_err_hi"], s["react_rel_err"]) == (0.2, 0.15, 0.25, 0.6)
     t = df.iloc[1]  # the teacher: its own autodiff is the reference, so no gradient error is claimed for it
     assert np.isnan(t["grad_cosine"]) and np.isnan(t["grad_rel_err"]) and np.isnan(t["jac_rel_err"])
+    assert (df["grad_rel_err_cv"] == 0.34).all() and (df["react_rel_err_mean"] == 1.1).all()  # the baselines on every row
     assert t["ade_1step_m"] == 0.1 and t["ade_rollout_m"] == 0.5 and t["n_episodes"] == 1 and t["step_ms_median"] == 900.0
     assert (store / "compare.png").read_bytes()[:4] == b"\x89PNG"
     assert (store / "compare.csv").read_text().splitlines()[0].startswith("scenario,world,gradients,predictor,method")
     assert s["n_runs"] == 4 and len(s["runs"].split()) == 4
-    assert "surrogate" in caplog.text and "0.97" in caplog.text
+    assert "surrogate" in caplog.text and "0.34" in caplog.text  # the cv baseline printed beside the rows
     runs = mlflow.search_runs(experiment_names=["compare"])
     assert len(runs) == 1 and runs.iloc[0]["status"] == "FINISHED"
 

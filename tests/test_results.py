@@ -152,3 +152,12 @@ def test_a_planner_beats_the_ceiling_with_a_courteous_merge_it_missed_or_made_la
                 {"seed": 3, "courteous": 1.0, "t_merge": 20.0}]
     assert results.beaten(worlds, episodes) == {1, 2}
     assert results.beaten(worlds, [dict(e, courteous=0.0) for e in episodes]) == set()  # a forced merge beats nothing
+
+
+def test_gradients_table_scores_the_student_and_the_surrogate_beside_both_baselines(tiny):
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+            for line in section(tiny[2], "Gradients").splitlines() if line.startswith("| ") and "---" not in line}
+    for name in ("surrogate", "student", "constant velocity (baseline)", "mean Jacobian (baseline)"):
+        rel_err, react = numbers(rows[name][2]), numbers(rows[name][3])  # d b_i/dZ and its reaction part
+        assert rel_err and rel_err[0] >= 0.0 and react and react[0] >= 0.0, name
+    assert numbers(rows["constant velocity (baseline)"][3])[0] == pytest.approx(1.0, abs=1e-3)  # cv: no reaction at all
