@@ -26,14 +26,35 @@ def stand_in(name, models_dir):
     return TorchPredictor(name, smooth_student())
 
 
-def planning_windows(n=6, seed=0):
-    """Windows the planner's recursion visits, from a synthetic platoon history with sampled ego plans."""
+class Blind(torch.nn.Module):
+    """A predictor whose others never react to the ego: they see a phantom ego 40 m behind car 1 instead."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, window):
+        phantom = window[:, :, 1:2] - torch.tensor([40.0, 4.0], dtype=window.dtype)
+        return self.net(torch.cat([phantom, window[:, :, 1:]], dim=2))
+
+
+def blind_stand_in(name, models_dir):
+    """stand_in's network made blind to the ego (Blind): training data with no interaction in it."""
+    return TorchPredictor(name, Blind(smooth_student()).eval())
+
+
+def planning_states(n=6, seed=0):
+    """(history (n, T_obs, SLOTS, 2), ego plan (n, T_p, 2)): a synthetic platoon history with sampled ego plans."""
     rng = np.random.default_rng(seed)
     start = np.array([[0.0, 0.0], [12.0, 4.0], [5.0, 4.0], [-2.0, 4.0], [-9.0, 4.0]])
     vel = np.array([1.0, 0.0]) + rng.normal(0, 0.05, (n, 1, SLOTS, 2))
     history = start[None, None] + rng.normal(0, 0.5, (n, 1, SLOTS, 2)) + np.arange(T_OBS)[None, :, None, None] * vel
-    history, ego_future = instantiate(compose_cfg("surrogate").states).sample(history, rng)
-    return jacobians.planner_windows(StudentPredictor(smooth_student()).phi, history, ego_future)
+    return instantiate(compose_cfg("surrogate").states).sample(history, rng)
+
+
+def planning_windows(n=6, seed=0):
+    """Windows the planner's recursion visits from planning_states."""
+    return jacobians.planner_windows(StudentPredictor(smooth_student()).phi, *planning_states(n, seed))
 
 
 def test_central_differences_agree_with_autodiff_on_a_smooth_student():
@@ -167,3 +188,20 @@ def test_the_baselines_and_the_reaction_split_on_a_constructed_state():
 
     half = student_t.ppf(0.975, len(shares) - 1) * np.std(shares, ddof=1) / np.sqrt(len(shares))  # its 95% interval over states
     assert np.allclose(scores["cv"]["grad_rel_err"][1:], [np.mean(shares) - half, np.mean(shares) + half])
+
+
+def test_a_surrogate_trained_without_interaction_scores_at_the_no_reaction_baseline(tmp_path, tiny_dataset):
+    """Trained on a source whose others never react (so its mean Jacobian has no reaction either), then scored against
+    the reacting source on its planning states: its reaction error is the baseline's 1, not better."""
+    from surrogate.cli import per_state, run
+    from surrogate.evaluate import gradient_accuracy
+
+    run(job_cfg(tmp_path, tiny_dataset, "predictor._target_=test_surrogate.blind_stand_in"))
+    history, ego_future = planning_states(30, seed=3)
+    source = TorchPredictor("student", smooth_student())
+    W = jacobians.planner_windows(source.phi, history, ego_future)
+    J, n = jacobians.autodiff(source, W), len(history)
+    J_hat = models.load(tmp_path, T_OBS, SLOTS - 1).jac(W)
+    scores = gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J), {"blind": per_state(n, J_hat)},
+                               history, ego_future, 3.95)
+    assert scores["blind"]["react_rel_err"][1] > 0.9  # its interval's lower end: no better than predicting no reaction
