@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 
 from bench import ceiling
 from bench.branches import heldout_seeds
-from bench.results import Plan, ceiling_row, dense_table, markdown, methods, outcomes, pct, read_ceiling, read_episodes
+from bench.results import Plan, beaten, ceiling_row, dense_table, markdown, methods, outcomes, pct, read_ceiling, read_episodes
 from core import validate
 from core.jobs import CONF_DIR, UserError, console, guarded, job_config, mlflow_run, writable
 
@@ -117,15 +117,23 @@ def data_root(cfg, work: Path, world: str) -> Path:
     return Path(given) if given else work / "data" / world / cfg.dataset.name
 
 
-def world_table(cfg, out: dict, batches: dict, work: Path, test: str, rng) -> tuple[list[str], dict]:
-    """The outcome table of one test world: the ceiling's row, then every batch's rows (ADMM, and NNMPC where run)."""
+def world_table(cfg, batches: dict, work: Path, test: str, rng) -> tuple[list[str], dict]:
+    """The outcome table of one test world (the ceiling's row, then every batch's rows: ADMM, and NNMPC where run) and
+    the per-world check that no row merged courteously where the ceiling did not, or sooner."""
     worlds = read_ceiling(work, test)
-    rows = {("ceiling", ""): ceiling_row(out[f"ceiling {test}"], worlds, "ceiling", cfg.bootstrap.resamples, rng)}
+    searched = {int(w["seed"]) for w in worlds}
+    rows = {("ceiling", ""): ceiling_row(ceiling.aggregate(worlds), worlds, "ceiling", cfg.bootstrap.resamples, rng)}
+    beats = {}
     for (w, row), folder in batches.items():
         if w == test:
             for m in methods(folder):
-                rows[row, m] = outcomes([read_episodes(folder, m)], cfg.bootstrap.resamples, rng)
-    return dense_table(rows), rows
+                episodes = read_episodes(folder, m)
+                rows[row, m] = outcomes([episodes], cfg.bootstrap.resamples, rng)
+                beats[row, m] = beaten(worlds, [e for e in episodes if int(e["seed"]) in searched])
+    detail = "; ".join(f"{row} {m.upper()}: seeds {sorted(s)}" for (row, m), s in beats.items() if s)
+    check = (f"Per-world check on the ceiling's {len(worlds)} worlds: a row merged courteously where the ceiling did not, "
+             f"or sooner, on {len(set().union(*beats.values()))} of them" + (f" ({detail})." if detail else "."))
+    return [*dense_table(rows), check, ""], rows
 
 
 def verdicts(rows: dict, test: str, cfg) -> list[str]:
@@ -144,8 +152,8 @@ def verdicts(rows: dict, test: str, cfg) -> list[str]:
                      "intervals that do not overlap."]
 
 
-def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
-    """Write dest/cross-world.md from the jobs' outputs; returns its path."""
+def report(cfg, batches: dict, work: Path, dest: Path) -> Path:
+    """Write dest/cross-world.md from what the jobs wrote in `work`; returns its path."""
     rng = np.random.default_rng(cfg.bootstrap.seed)
     lines = ["# Cross-world results", "",
              "Written by `cross-world` (bench/cross_world.py, `make cross-world`); do not edit by hand. Worlds: "
@@ -158,7 +166,7 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
               "T_p-step rollouts fed the recorded ego future), mm.", ""]
     lines += markdown(["test world", "predictor", "ADE 1-step", "ADE rollout", "FDE rollout"], accuracy_rows(cfg, work))
     for test in cfg.worlds:
-        table, rows = world_table(cfg, out, batches, work, test, rng)
+        table, rows = world_table(cfg, batches, work, test, rng)
         lines += [f"## Planning in `{test}`", "", f"`planner scenario={test} episodes={cfg.episodes[test]} seed={cfg.seed}` "
                   f"per row (ADMM with the paper's step; NNMPC: the baseline), `ceiling scenario={test} "
                   f"episodes={cfg.ceiling_episodes[test]}` on the first of the same worlds.", ""]
@@ -175,8 +183,8 @@ def run(cfg: DictConfig) -> Path:
     dest, work = writable(Path(cfg.out_dir), "out_dir"), writable(Path(cfg.work_dir), "work_dir")
     plan, batches = build_plan(cfg, work)
     log.info("cross-world: %d jobs; work in %s", len(plan.steps), work)
-    out = plan.run()
-    path = report(cfg, out, batches, work, dest)
+    plan.run()
+    path = report(cfg, batches, work, dest)
     with mlflow_run("cross-world", cfg, run_name="cross-world"):
         import mlflow
 

@@ -32,6 +32,7 @@ def test_tiny_run_plans_in_both_worlds_with_models_of_both_and_reports_the_episo
             assert len(eps) == 2
             got = numbers(cell(md, title, "student, trained in highway", m.upper(), 3))
             assert np.allclose(got[0], rate_cell([float(e["courteous"]) for e in eps])[0], atol=0.05)
+    assert md.count("Per-world check on the ceiling's 1 worlds") == 2
     accuracy = md.split("## Prediction accuracy across worlds\n")[1].split("\n## ")[0]
     for test in ("dense", "highway"):
         for row in ("cv", "teacher, trained in dense", "teacher, trained in highway", "student, trained in highway"):
