@@ -222,6 +222,19 @@ def over_trainings(values: list[dict], keys) -> dict:
     return {k: stats.mean_ci([v.get(k, np.nan) for v in values]) for k in keys}
 
 
+def gradient_row(runs: list[dict], suffix: str, keys) -> dict:
+    """{key: (mean, lo, hi)} of one source's gradient scores (the surrogate job's metrics `key + suffix`): the t interval
+    over trainings, or with one training the job's own interval over its planning states; NaN where not scored."""
+    if len(runs) > 1:
+        return over_trainings([{k: r.get(k + suffix, np.nan) for k in keys} for r in runs], keys)
+    out = {}
+    for k in keys:
+        name = k + suffix
+        out[k] = tuple(runs[0].get(name + e, np.nan) for e in ("", "_lo", "_hi")) if name + "_lo" in runs[0] \
+            else (runs[0].get(name, np.nan),) * 3
+    return out
+
+
 def batch_rows(cfg, batches, scenario, sources, rng) -> dict:
     """{(source, method): outcomes row} of one scenario's batches."""
     rows = {}
@@ -428,12 +441,12 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
                       [[m, *(mm(acc[m][k]) for k in ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_rollout_m_yield"))]
                        for m in MODELS])
     grads = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err")
-    rows = {name: over_trainings([{k: out[f"surrogate seed {s}"].get(k + suffix, np.nan) for k in grads} for s in seeds], grads)
-            for name, suffix in GRADIENT_ROWS.items()}
+    rows = {name: gradient_row([out[f"surrogate seed {s}"] for s in seeds], suffix, grads) for name, suffix in GRADIENT_ROWS.items()}
     rows["student"]["jac_rel_err"] = over_trainings(d["student"], ("jac_rel_err",))["jac_rel_err"]  # its distill run's
     lines += ["## Gradients", "", "Against teacher autodiff on held-out planning states, beside the trivial baselines: "
               "constant velocity's Jacobian and the training set's mean Jacobian. The reaction part is the others' "
-              "d p_i / dZ, where predicting no reaction scores 1.", ""]
+              "d p_i / dZ, where predicting no reaction scores 1. Intervals: over trainings; with one training, over "
+              "the surrogate job's planning states.", ""]
     lines += markdown(["source", "local Jacobian rel. error", "d b_i/dZ cosine", "d b_i/dZ rel. error", "reaction rel. error"],
                       [[name, *(fmt(r[k][0], ".3f", *r[k][1:]) for k in grads)] for name, r in rows.items()])
     inter_runs = {}
