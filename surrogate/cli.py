@@ -138,6 +138,8 @@ def run(cfg: DictConfig) -> dict:
              f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "
              f"others' reaction d p_i/dZ rel err {metrics['react_rel_err']:.3f} (mean-J {metrics['react_rel_err_mean']:.3f}); "
              f"local J rel err {metrics['jac_rel_err']:.4f} (mean-J {metrics['jac_rel_err_mean']:.4f}); "
+             + (f"the student's d b_i/dZ rel err {metrics['grad_rel_err_student']:.4f}, reaction "
+                f"{metrics['react_rel_err_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +
              f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff")
     return metrics
 
