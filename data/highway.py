@@ -311,6 +311,8 @@ class HighwayWorld:
 class HighwayScenario(DenseScenario):
     """The dense scenario's draw, driven in highway-env (its car size and axle distances in road and params)."""
 
+    safety_stretch: float  # the planner's safety ellipse for these bodies: along-road semi-axis over R (conf/mpc reads
+    # it as `stretch`, core.rollout.b_i; scenarios without it keep the paper's circle)
     predictor_moves = False  # highway-env's cars drive themselves (HighwayWorld.move)
 
     def make_world(self, seed: int) -> HighwayWorld:

@@ -29,8 +29,6 @@ class Scenario:
     b_max: float  # the hardest any other car can brake (m/s^2)
     b_safe: float  # a merge is courteous when nobody brakes harder than this (m/s^2)
     merge_tol: float  # merged once the ego's centre is this close to the target lane's centre (m)
-    safety_stretch: float = 1.0  # the planner's safety ellipse that covers these bodies: its along-road semi-axis over R
-    # (conf/mpc's `stretch`, core.rollout.b_i); 1: the paper's circle
     predictor_moves: ClassVar[bool] = True  # its worlds can put the others where a predictor says (world=predictor)
 
     def __post_init__(self):
