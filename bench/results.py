@@ -39,6 +39,7 @@ from core import stats, validate
 from core.jobs import CONF_DIR, UserError, console, guarded, job_config, mlflow_run, writable
 from planner.batch import progress
 from planner.gradients import available, reads_models
+from surrogate.evaluate import ENDS, metric
 
 log = logging.getLogger(__name__)
 TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
@@ -226,12 +227,13 @@ def gradient_row(runs: list[dict], suffix: str, keys) -> dict:
     """{key: (mean, lo, hi)} of one source's gradient scores (the surrogate job's metrics `key + suffix`): the t interval
     over trainings, or with one training the job's own interval over its planning states; NaN where not scored."""
     if len(runs) > 1:
-        return over_trainings([{k: r.get(k + suffix, np.nan) for k in keys} for r in runs], keys)
+        return over_trainings([{k: r.get(metric(k, suffix), np.nan) for k in keys} for r in runs], keys)
     out = {}
     for k in keys:
-        name = k + suffix
-        out[k] = tuple(runs[0].get(name + e, np.nan) for e in ("", "_lo", "_hi")) if name + "_lo" in runs[0] \
-            else (runs[0].get(name, np.nan),) * 3
+        if metric(k, suffix, "_lo") in runs[0]:
+            out[k] = tuple(runs[0].get(metric(k, suffix, e), np.nan) for e in ENDS)
+        else:  # a figure without an interval (jac_rel_err), or one not scored
+            out[k] = (runs[0].get(metric(k, suffix), np.nan),) * 3
     return out
 
 

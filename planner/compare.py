@@ -25,10 +25,12 @@ from omegaconf import DictConfig
 from core import stats, validate
 from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, console, guarded, mlflow_run, open_experiment, options
 from planner.gradients import predictor_of
+from surrogate.evaluate import metric
 
 log = logging.getLogger(__name__)
-GRADIENT = ["grad_cosine", "grad_rel_err", "grad_rel_err_lo", "grad_rel_err_hi", "react_rel_err"]  # d b_i/dZ against teacher
-# autodiff on the surrogate job's held-out planning states, with the whole gradient's 95% interval and the reaction part's
+GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err", ""), "grad_rel_err_lo": ("grad_rel_err", "_lo"),
+            "grad_rel_err_hi": ("grad_rel_err", "_hi"), "react_rel_err": ("react_rel_err", "")}  # column: (score, end) of
+# d b_i/dZ against teacher autodiff on the surrogate job's held-out planning states (surrogate.evaluate.metric)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
 BASELINES = {"cv": "_cv", "mean Jacobian": "_mean"}  # the trivial gradient sources every row is shown against
 MEANS = ("t_merge", "C_max", "admm_iters_mean", "fallbacks", "b_imposed_max")  # episode-weighted over the pooled runs
@@ -49,11 +51,10 @@ def metrics_of(run: pd.Series | None, keys, prefix: str = "") -> dict:
     return {k: np.nan if run is None else run.get(f"metrics.{prefix}{k}", np.nan) for k in keys}
 
 
-def gradient_error(run: pd.Series | None, suffix: str) -> dict:
-    """GRADIENT's columns of the source that the surrogate job logged with `suffix` ("" the surrogate, "_cv", "_mean",
-    "_student"): grad_rel_err<suffix>, its interval grad_rel_err<suffix>_lo and _hi, ...; NaN where absent."""
-    name = lambda k: k.replace("grad_rel_err_", f"grad_rel_err{suffix}_") if k.endswith(("_lo", "_hi")) else k + suffix
-    return {k: np.nan if run is None else run.get(f"metrics.{name(k)}", np.nan) for k in GRADIENT}
+def gradient_error(run: pd.Series | None, source: str) -> dict:
+    """GRADIENT's columns of the Jacobian source the surrogate job scored as `source` ("" the surrogate, "_cv", "_mean",
+    "_student"); NaN where absent."""
+    return {col: np.nan if run is None else run.get(f"metrics.{metric(k, source, e)}", np.nan) for col, (k, e) in GRADIENT.items()}
 
 
 def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame,
@@ -75,7 +76,7 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     if suffix is not None:
         row.update(gradient_error(scored, suffix))
     for s in BASELINES.values():
-        row.update({f"{k}{s}": v for k, v in gradient_error(scored, s).items() if k in ("grad_rel_err", "react_rel_err")})
+        row.update({metric(k, s): v for k, v in gradient_error(scored, s).items() if k in ("grad_rel_err", "react_rel_err")})
     row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
 

@@ -120,8 +120,8 @@ def run(cfg: DictConfig) -> dict:
         J_hats = {"": J_hat, "_mean": J_mean, "_cv": J_cv, **student_jacobian(cfg, W)}
         scores = evaluate.gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J),
                                             {k: per_state(n, v) for k, v in J_hats.items()}, history, ego_future, R)
-        metrics.update({f"{k}{suffix}{e}": x for suffix, s in scores.items() for k, v in s.items()
-                        for e, x in zip(("", "_lo", "_hi"), v)})
+        metrics.update({evaluate.metric(k, suffix, e): x for suffix, s in scores.items() for k, v in s.items()
+                        for e, x in zip(evaluate.ENDS, v)})
 
         window = test[:1]
         metrics["forward_us"] = time_us(surrogate.jac, window, cfg.timing.repeats, cfg.timing.budget_s)

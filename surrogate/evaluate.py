@@ -9,6 +9,14 @@ import numpy as np
 from core import stats
 from core.rollout import b_i_jacobian, rollout_jacobian
 
+ENDS = ("", "_lo", "_hi")  # a score's mean, then the ends of its 95% interval
+
+
+def metric(key: str, source: str = "", end: str = "") -> str:
+    """The logged name of a gradient score: `key` (grad_rel_err, ...) of the Jacobian source `source` ("" the surrogate,
+    "_cv", "_mean", "_student"), its mean or an end of its interval (ENDS): metric("grad_rel_err", "_cv", "_lo")."""
+    return f"{key}{source}{end}"
+
 
 def replay(windows, nexts, Js):
     """A phi_jac for rollout_jacobian that hands back batched results (T_p, ...) step by step, checking each window."""
