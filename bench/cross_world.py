@@ -21,7 +21,19 @@ from omegaconf import DictConfig
 
 from bench import ceiling
 from bench.branches import heldout_seeds
-from bench.results import Plan, beaten, ceiling_row, dense_table, markdown, methods, outcomes, pct, read_ceiling, read_episodes
+from bench.results import (
+    Plan,
+    add_training,
+    beaten,
+    ceiling_row,
+    dense_table,
+    markdown,
+    methods,
+    outcomes,
+    pct,
+    read_ceiling,
+    read_episodes,
+)
 from core import validate
 from core.jobs import CONF_DIR, UserError, console, guarded, job_config, mlflow_run, writable
 
@@ -43,11 +55,9 @@ def label(source: str, trained: str | None) -> str:
 def build_plan(cfg, work: Path):
     """The jobs (Plan) and the planner batches' folders {(test world, row label): folder}."""
     from data import cli as data_cli
-    from distill import train
     from planner import cli as planner_cli
     from planner.gradients import reads_models
     from planner.setup import planner_config
-    from surrogate import cli as surrogate_cli
 
     plan, batches = Plan(), {}
     for w in cfg.worlds:
@@ -56,15 +66,8 @@ def build_plan(cfg, work: Path):
         data_dir, models = work / "data" / w, models_dir(cfg, work, w)
         plan.add(f"make-dataset {w}", data_cli.run, job_config("make_dataset", [
             f"scenario={w}", f"dataset={cfg.dataset.name}", f"out_dir={data_dir}", "plot_episodes=0"]))
-        common = [f"dataset={cfg.dataset.name}", f"dataset_dir={data_dir / cfg.dataset.name}", f"models_dir={models}"]
-        for model in ("teacher", "student"):
-            plan.add(f"distill {model} {w}", train.run, job_config("distill", [
-                f"model={model}", *common, f"run_dir={work / 'runs' / f'distill-{model}-{w}'}",
-                "trainer.enable_progress_bar=false", *cfg[model]]))
-        if "surrogate" in cfg.sources:
-            plan.add(f"surrogate {w}", surrogate_cli.run, job_config("surrogate", [
-                f"dataset_dir={data_dir / cfg.dataset.name}", f"models_dir={models}", f"out_dir={work / 'runs' / f'surrogate-{w}'}",
-                *cfg.surrogate]))
+        add_training(plan, w, w, cfg.dataset.name, data_dir / cfg.dataset.name, models, work / "runs", cfg,
+                     surrogate="surrogate" in cfg.sources)
     for test in cfg.worlds:
         for source in cfg.sources:
             for trained in cfg.worlds if reads_models(source) else [None]:

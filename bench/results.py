@@ -95,14 +95,32 @@ def ceiling_worlds(p) -> dict:
     return out
 
 
+def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, models: Path, runs: Path, extra, seed=0,
+                 surrogate=True):
+    """Add to `plan` the teacher, the student and (with `surrogate`) the surrogate trained on dataset_dir (of conf/dataset/
+    option `dataset`) into `models` with training seed `seed`: jobs 'distill <model> <tag>' and 'surrogate <tag>', their
+    run folders runs/distill-<model>-<name> and runs/surrogate-<name>; extra: each job's extra overrides by key
+    (teacher, student, surrogate)."""
+    from distill import train
+    from surrogate import cli as surrogate_cli
+
+    common = [f"dataset={dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}"]
+    for model in ("teacher", "student"):
+        plan.add(f"distill {model} {tag}", train.run, job_config("distill", [
+            f"model={model}", *common, f"run_dir={runs / f'distill-{model}-{name}'}", "trainer.enable_progress_bar=false",
+            *extra[model]]))
+    if surrogate:
+        plan.add(f"surrogate {tag}", surrogate_cli.run, job_config("surrogate", [
+            f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}", f"out_dir={runs / f'surrogate-{name}'}",
+            *extra["surrogate"]]))
+
+
 def build_plan(cfg, work: Path):
     """The preset's jobs (Plan) and the planner batches' output folders {(scenario, source, seed k or None): folder}."""
     from bench import interaction, step_time
     from data import cli as data_cli
-    from distill import train
     from planner import cli as planner_cli
     from planner.setup import planner_config
-    from surrogate import cli as surrogate_cli
 
     p = cfg.results_preset
     data_dir, plan, batches = work / "data", Plan(), {}
@@ -111,14 +129,7 @@ def build_plan(cfg, work: Path):
                                                                        "plot_episodes=0"]))
     models = lambda k: work / "models" / f"seed{k}"
     for k in p.training_seeds:
-        common = [f"dataset={p.dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models(k)}", f"seed={k}"]
-        for model in ("teacher", "student"):
-            plan.add(f"distill {model} seed {k}", train.run, job_config("distill", [
-                f"model={model}", *common, f"run_dir={work / 'runs' / f'distill-{model}-{k}'}", "trainer.enable_progress_bar=false",
-                *p[model]]))
-        plan.add(f"surrogate seed {k}", surrogate_cli.run, job_config("surrogate", [
-            f"dataset_dir={dataset_dir}", f"models_dir={models(k)}", f"seed={k}", f"out_dir={work / 'runs' / f'surrogate-{k}'}",
-            *p.surrogate]))
+        add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k)
     interaction_cfgs = {}
     for i, k in enumerate(p.training_seeds):
         sources = [s for s in p.interaction_sources if i == 0 or s in TRAINED]  # untrained ones once
