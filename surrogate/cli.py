@@ -66,12 +66,14 @@ def time_autodiff(cfg, window):
 
 def student_jacobian(cfg, W) -> dict:
     """{"_student": the distilled student's local Jacobians on windows W} when models_dir holds one, so that its d b_i / dZ
-    is scored on the same planning states as the surrogate's; {} otherwise."""
+    is scored on the same planning states as the surrogate's; {} otherwise, and when the student is the surrogate's source."""
+    if cfg.source == "student":
+        return {}
     try:
         student = instantiate_user(cfg.predictor, name="student")
     except UserError:
         return {}
-    return {"_student": student.phi_jac(W)[1]} if cfg.source != "student" else {}
+    return {"_student": student.phi_jac(W)[1]}
 
 
 @guarded
