@@ -239,8 +239,9 @@ def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):
         Delta, alpha = repair.repair_step(obs.z0, Delta, alpha, Z, b[:safety.n_b], Jb[:safety.n_b], s.params, W,
                                           s.delta_box, s.a_box, s.check_steps, s.repair_margin, s.osqp)
         Z, values = rollout(s, obs, source, Delta, alpha)
-        if acceptable(s, obs, source, checked_b(s, values)):
-            return st._replace(Delta=Delta, alpha=alpha, Z=Z, zstate=None), checked_b(s, values), values
+        b_min = checked_b(s, values)
+        if acceptable(s, obs, source, b_min):
+            return st._replace(Delta=Delta, alpha=alpha, Z=Z, zstate=None), b_min, values
     return None
 
 
