@@ -134,9 +134,9 @@ def world_table(cfg, batches: dict, work: Path, test: str, rng) -> tuple[list[st
                 rows[row, m] = outcomes([episodes], cfg.bootstrap.resamples, rng)
                 beats[row, m] = beaten(worlds, [e for e in episodes if int(e["seed"]) in searched])
     detail = "; ".join(f"{row} {m.upper()}: seeds {sorted(s)}" for (row, m), s in beats.items() if s)
-    check = (f"Per-world check on the ceiling's {len(worlds)} worlds: a row merged courteously where the ceiling did not, "
-             f"or sooner, on {len(set().union(*beats.values()))} of them" + (f" ({detail})." if detail else "."))
-    return [*dense_table(rows), check, ""], rows
+    verdict = (f"Per-world check on the ceiling's {len(worlds)} worlds: a row merged courteously where the ceiling did not, "
+               f"or sooner, on {len(set().union(*beats.values()))} of them" + (f" ({detail})." if detail else "."))
+    return [*dense_table(rows), verdict, ""], rows
 
 
 def verdicts(rows: dict, test: str, cfg) -> list[str]:
