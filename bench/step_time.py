@@ -3,7 +3,7 @@ beside the QP floor (the same ADMM with the safety linearisation frozen: no netw
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
 (cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
 (`<source>-ref`: mpc.core=reference, numpy and OSQP) and at a longer horizon (`<source>-T16`); then a profile of where
-a step's time goes (compiled kernels, DAQP solves, Python); logged to MLflow (`bench`).
+a step's time goes (the one-call ADMM solve, other compiled kernels, DAQP solves, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
@@ -182,20 +182,19 @@ def cost_gap(J_admm, J_ipopt) -> np.ndarray:
 def kernels() -> set:
     """The profile keys (file, line, name) of the compiled core's numba kernels (cProfile sees a dispatcher call as its
     Python function's)."""
-    from planner import jit_admm, jit_rollout, jit_zstep
+    from planner import daqp_qp, jit_admm, jit_rollout, jit_zstep
 
-    funcs = [f.py_func for m in (jit_admm, jit_rollout, jit_zstep) for f in vars(m).values() if hasattr(f, "py_func")]
+    funcs = [f.py_func for m in (daqp_qp, jit_admm, jit_rollout, jit_zstep) for f in vars(m).values() if hasattr(f, "py_func")]
     return {(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
 
 
 def part(key, compiled=frozenset()) -> str:
-    """The part of an MPC step a profiled function belongs to: the compiled kernels (keys in `compiled`), its library,
-    or its file in this repository (Python)."""
+    """The part of an MPC step a profiled function belongs to: the one-call ADMM solve, DAQP solves called from Python,
+    other compiled kernels (keys in `compiled`), its library, or its file in this repository (Python)."""
     file, _, name = key
     if key in compiled:
-        return "compiled kernels (numba)"
-    if file.endswith("planner/daqp_qp.py"):  # DAQP's Cython calls are invisible to cProfile: their time is their caller's
-        return "DAQP solves (in planner/daqp_qp.py)"
+        return {"admm_loop": "ADMM solve, one compiled call (numba + DAQP)",
+                "solve": "DAQP solves called from Python"}.get(name, "compiled kernels (numba)")
     if file == "~":  # a C function: name it by the extension it belongs to
         return next((lib for lib in ("onnxruntime", "osqp", "daqp", "torch") if lib in name), "numpy / builtins")
     if "site-packages/" in file:
@@ -207,19 +206,23 @@ def part(key, compiled=frozenset()) -> str:
 def profile(step, src, s_of, states) -> tuple[dict, dict]:
     """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP and DAQP
     solves: per step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
-    prof = cProfile.Profile()
+    from planner import daqp_qp
+
+    prof, solves = cProfile.Profile(), int(daqp_qp.SOLVES[0])
     for state in states:
         prof.runcall(step, s_of(state.scenario), state.obs, src, state.warm)
+    solves = int(daqp_qp.SOLVES[0]) - solves  # counted inside the compiled calls too, which cProfile cannot see into
+    calls = defaultdict(float, {"DAQP solves": solves / len(states)} if solves else {})
     stats = pstats.Stats(prof).stats  # {(file, line, name): (primitive calls, calls, own s, cumulative s, callers)}
-    ms, calls, compiled = defaultdict(float), defaultdict(float), kernels()
+    ms, compiled = defaultdict(float), kernels()
     for key, (_, n, own, _, _) in stats.items():
         ms[part(key, compiled)] += 1e3 * own / len(states)
         if key[2] == "run" and "onnxruntime" in key[0]:  # InferenceSession.run, once per call (its C parts are not)
             calls["onnxruntime calls"] += n / len(states)
         if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
             calls["OSQP solves"] += n / len(states)
-        if key[0].endswith("planner/daqp_qp.py") and key[2] in ("solve", "box_qp"):
-            calls["DAQP solves"] += n / len(states)
+        if key in compiled and key[2] == "admm_loop":
+            calls["one-call ADMM solves"] += n / len(states)
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 

@@ -130,20 +130,38 @@ def student_rollout(Ws, bs, s, history, ego):
     return values, chain_rule(Js, T_obs)
 
 
-def compiled_jacobian(source):
-    """jacobian(history, ego) -> (values, d values / d ego) compiled for a source that differentiates its predictor's
-    own exact local Jacobians (cv, student); None for the others, whose own `jacobian` the compiled core calls."""
+@njit(cache=True)
+def predicted(Ws, bs, s, history, ego):
+    """Rollout values (T_p, SLOTS, 2) and d values / d ego plan (T_p, SLOTS, 2, T_p, 2) of a predictor the compiled core
+    runs itself (compiled_params): constant velocity when s is empty, else the student from its float64 weights."""
+    if len(s) == 0:
+        return cv_rollout(history, ego)
+    return student_rollout(Ws, bs, s, history, ego)
+
+
+CV_PARAMS = ((np.zeros((1, 1)),), (np.zeros(1),), np.zeros(0))  # `predicted`'s placeholders for constant velocity
+
+
+def compiled_params(source):
+    """`predicted`'s (Ws, bs, s) for a source that differentiates its predictor's own exact local Jacobians and that
+    the compiled core runs itself (cv, student); None for the others, whose Jacobians come from Python."""
     if not isinstance(source, ExactLocal):
         return None
     if isinstance(source.predictor, ConstantVelocity):
-        return lambda history, ego: cv_rollout(np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
+        return CV_PARAMS
     if isinstance(source.predictor, StudentPredictor):
-        Ws = tuple(np.ascontiguousarray(W) for W, _ in source.predictor.weights)
-        bs = tuple(np.ascontiguousarray(b) for _, b in source.predictor.weights)
-        s = np.ascontiguousarray(source.predictor.s)
-        return lambda history, ego: student_rollout(Ws, bs, s, np.ascontiguousarray(history, float),
-                                                    np.ascontiguousarray(ego, float))
+        return (tuple(np.ascontiguousarray(W) for W, _ in source.predictor.weights),
+                tuple(np.ascontiguousarray(b) for _, b in source.predictor.weights), np.ascontiguousarray(source.predictor.s))
     return None
+
+
+def compiled_jacobian(source):
+    """jacobian(history, ego) -> (values, d values / d ego) compiled for the sources of compiled_params; None for the
+    others, whose own `jacobian` the compiled core calls."""
+    params = compiled_params(source)
+    if params is None:
+        return None
+    return lambda history, ego: predicted(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
 
 
 def compiled_chain(source):

@@ -1,15 +1,18 @@
 """The compiled core's Z-step (mpc.core=compiled): planner.zstep's trust-region SQP with its arithmetic in numba kernels,
 b_i from the compiled rollouts (planner.jit_rollout) and each QP solved by DAQP with the linearised b_i >= 0 as soft
-rows priced by the L1 slack penalty (planner.daqp_qp), so the slack needs no variables of its own."""
+rows priced by the L1 slack penalty (planner.daqp_qp), so the slack needs no variables of its own. For the predictors
+the core runs itself (cv, the student) the whole SQP is one kernel (sqp_z_update, called inside planner.jit_admm's
+compiled loop); for the others (their Jacobians from Python) CompiledSQPZStep drives the same kernels from Python."""
 from functools import partial
 
 import numpy as np
 from numba import njit
 
 from core.rollout import ego_xy
+from planner import daqp_qp
 from planner.daqp_qp import INF, SoftQP
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_rollout import compiled_chain, compiled_jacobian, rows_affine
+from planner.jit_rollout import compiled_chain, compiled_jacobian, compiled_params, predicted, rows_affine
 from planner.safety import Safety
 from planner.zstep import SQPZStep
 
@@ -22,6 +25,7 @@ class CompiledSafety(Safety):
         super().__init__(source, history, R, T_p, courtesy, stretch)
         self.history = np.ascontiguousarray(self.history)
         self.x_obs = np.ascontiguousarray(self.history[-2:, :, 0])
+        self.params = compiled_params(source)  # planner.jit_rollout.predicted's (Ws, bs, s), or None: Python-side Jacobians
         self.jacobian = compiled_jacobian(source) or compiled_chain(source) or source.jacobian
         self._last = None  # (Z, the linearisation, (rows, d rows / d Z)) of the last `reused`
 
@@ -120,6 +124,62 @@ def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambd
             radius = min(2.0 * radius, max_radius)
         return True, radius, step
     return False, max(0.5 * radius, min_radius), step
+
+
+@njit(cache=True)
+def safety_rows(pred, rows_of, lin, Z, reuse_radius):
+    """CompiledSafety.linearize as a kernel: the rows at Z and their d / d Z about the linearisation `lin` (ego0, values0,
+    grads, taken), taken anew from the compiled predictor pred = (Ws, bs, s, history, x_obs) where Z's ego xy lie more
+    than reuse_radius (m) from it; rows_of = (R, stretch, dt, b_c, courtesy) as rows_affine's. Returns (b, Jb, lin)."""
+    Ws, bs, s, history, x_obs = pred
+    R, stretch, dt, b_c, courtesy = rows_of
+    ego0, values0, grads, taken = lin
+    if not taken or offset(Z, ego0) > reuse_radius:
+        ego0 = Z.reshape(-1, 4)[:, :2].copy()
+        values0, grads = predicted(Ws, bs, s, history, ego0)
+        lin = (ego0, values0, grads, True)
+    b, Jb = rows_affine(Z, ego0, values0, grads, R, stretch, x_obs, dt, b_c, courtesy)
+    return b, Jb, lin
+
+
+@njit(cache=True)
+def sqp_z_update(zp, sqp, pred, rows_of, n_b, qp, cold, lin, Z, mu, c_Z, radius, fresh):
+    """CompiledSQPZStep.__call__ as one kernel for a compiled predictor: Z_{k+1} from Z_k by trust-region SQP.
+
+    zp = (H, Phi_3's q, C, rho, state box lo, hi, trust-region mask); sqp = SQPSettings' numbers (max_iters,
+    trust_radius, min_radius, max_radius, tol, hard, lambda_s, slack_penalty, reuse_radius); qp: the Z-step's DAQP handle
+    (cold: its first solve this ADMM solve); lin: the Z-step's linearisation (safety_rows); fresh: start afresh (radius
+    trust_radius, b_i linearised at Z). Returns (Z, radius, lin, (SQP iterations, largest slack m^2, min b_i, min
+    courtesy row, lin_offset m), DAQP's exit flag)."""
+    H, q_3, C, rho, lo, hi, xy = zp
+    max_iters, trust_radius, min_radius, max_radius, tol, hard, lambda_s, slack_penalty, reuse_radius = sqp
+    if fresh:
+        radius = trust_radius
+    lin_q, Z = z_start(q_3, C, rho, mu, c_Z, Z, lo, hi)
+    b, Jb, lin = safety_rows(pred, rows_of, lin, Z, 0.0 if fresh else reuse_radius)
+    b_Z, slack, its, flag = b, 0.0, 0, 1
+    for its in range(1, max_iters + 1):
+        f, q_lo, q_hi, c_lo = z_qp(lin_q, Z, b, Jb, radius, lo, hi, xy, hard, lambda_s)
+        x, flag = daqp_qp.solve(qp, cold, H, f, q_lo, q_hi, Jb, c_lo)
+        cold = False
+        if flag < 1:
+            break
+        Z_new, slack = z_trial(x, Jb, c_lo, lo, hi, hard)
+        b_new, Jb_new, lin = safety_rows(pred, rows_of, lin, Z_new, reuse_radius)
+        accepted, radius, step = verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambda_s,
+                                         max_radius, min_radius)
+        if accepted:
+            Z, b_Z = Z_new, b_new
+            if step < tol:
+                break
+            b, Jb = b_new, Jb_new  # an accepted trial was linearised where it stands
+    b_min, c_min = np.inf, np.inf
+    for i in range(len(b_Z)):
+        if i < n_b:
+            b_min = min(b_min, b_Z[i])
+        else:
+            c_min = min(c_min, b_Z[i])
+    return Z, radius, lin, (its, slack, b_min, c_min, offset(Z, lin[0])), flag
 
 
 class CompiledSQPZStep:

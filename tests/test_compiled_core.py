@@ -1,6 +1,7 @@
 """The compiled core (mpc.core=compiled: numba kernels, DAQP) gives the reference core's plans (numpy, OSQP solved
 tight) on saved planning states for every source it runs, and its compiled rollouts, network Jacobians and b_i
 gradients match the reference maths and central differences."""
+import daqp
 import numpy as np
 import pytest
 import torch
@@ -10,10 +11,10 @@ from bench.states import collect, solver_step
 from core.rollout import SLOTS, T_OBS, accelerations, b_i, b_i_jacobian, courtesy_jacobian, ego_xy, rollout_jacobian
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner import jit_rollout
+from planner import daqp_qp, jit_rollout, jit_zstep
 from planner.daqp_qp import SoftQP
 from planner.gradients import ExactLocal, Surrogate
-from planner.qp import QP
+from planner.qp import QP, SolverFailure
 from planner.setup import drive, make, planner_config, setup
 from surrogate import models
 from surrogate.export import export
@@ -165,3 +166,47 @@ def test_compiled_closed_loop_drives_the_reference_episode_with_cv():
     assert len(a.controls) == len(b.controls) and not a.collided and not b.collided
     assert np.abs(a.controls - b.controls).max() <= U_TOL
     assert [bool(r["fallback"]) for r in a.rows] == [bool(r["fallback"]) for r in b.rows]
+
+
+def test_daqp_called_from_numba_solves_as_daqp_model_warm_started():
+    """planner.daqp_qp's C calls (its own struct layouts) against daqp's Python Model on one sequence of soft-row QPs,
+    the second and later solves warm-started from the last working set in both."""
+    rng = np.random.default_rng(0)
+    n, m, price = 16, 12, 1e3
+    L = rng.normal(size=(n, n))
+    H = L @ L.T + n * np.eye(n)
+    mine, model = SoftQP(H, price, True, m), daqp.Model()
+    sense = np.concatenate([np.zeros(n), np.full(m, daqp_qp.SOFT)]).astype(np.int32)
+    for k in range(20):
+        f, A, c_lo = 10 * rng.normal(size=n), rng.normal(size=(m, n)), 3 * rng.normal(size=m)
+        bu, bl = np.concatenate([np.ones(n), np.full(m, daqp_qp.INF)]), np.concatenate([-np.ones(n), c_lo])
+        if k == 0:
+            model.setup(H, f, A, bu, bl, sense)
+            weights = np.full(n + m, daqp_qp.SOFT_RHO)
+            model.soft_weights(rho_l=weights, rho_u=weights, w_l=np.full(n + m, price), w_u=np.full(n + m, price))
+        else:
+            model.update(f=f, A=A, bupper=bu, blower=bl)
+        want, _, flag, _ = model.solve()
+        assert flag >= 1 and np.abs(mine.solve(f, -np.ones(n), np.ones(n), A, c_lo) - want).max() < 1e-9
+
+
+def test_a_failed_daqp_solve_is_a_solver_failure():
+    """An infeasible hard row (c_lo above what the box allows) is DAQP's exit flag, raised as the planner's SolverFailure."""
+    qp = SoftQP(np.eye(2), 1.0, False, 1)
+    with pytest.raises(SolverFailure, match="DAQP exit flag"):
+        qp.solve(np.zeros(2), -np.ones(2), np.ones(2), np.ones((1, 2)), np.array([5.0]))
+
+
+@pytest.mark.parametrize("name", ["cv", "student"])
+def test_one_call_admm_solve_equals_the_same_kernels_driven_from_python(name, states, tmp_path, monkeypatch):
+    """The compiled predictors' one-call ADMM solve (jit_admm.admm_loop) and the Python-driven loop over the same kernels
+    (taken when the safety has no compiled predictor) give the same iterates to rounding, step for step."""
+    src = SOURCES[name](tmp_path)
+    s = make("two_lane", ["gradients=analytic", "mpc.core=compiled"])[2]
+    one_call = [solver_step()(s, st.obs, src, st.warm) for st in states]
+    monkeypatch.setattr(jit_zstep, "compiled_params", lambda source: None)  # the same compiled rollouts, called from Python
+    driven = [solver_step()(s, st.obs, src, st.warm) for st in states]
+    for a, b in zip(one_call, driven):
+        assert (a.reason, a.iters, a.fallback) == (b.reason, b.iters, b.fallback)
+        if a.plan is not None:
+            assert np.abs(a.plan.Z - b.plan.Z).max() < 1e-7 and np.abs(a.u - b.u).max() < 1e-9
