@@ -221,8 +221,8 @@ def profile(step, src, s_of, states) -> tuple[dict, dict]:
             calls["onnxruntime calls"] += n / len(states)
         if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
             calls["OSQP solves"] += n / len(states)
-        if key in compiled and key[2] == "admm_loop":
-            calls["one-call ADMM solves"] += n / len(states)
+        if key in compiled and key[2] in ("admm_loop", "solve"):
+            calls["one-call ADMM solves" if key[2] == "admm_loop" else "DAQP solves called from Python"] += n / len(states)
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 

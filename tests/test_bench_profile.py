@@ -1,6 +1,6 @@
 """The step-time bench's profile: its OSQP solve count equals a count taken by wrapping the QP wrapper, its network call
-count is zero for a source without a network, its parts add up to the profiled step's time, and its
-MLflow metric names are ones MLflow accepts."""
+count is zero for a source without a network, its DAQP count sees into the one-call ADMM solve, its parts add up to
+the profiled step's time, and its MLflow metric names are ones MLflow accepts."""
 import re
 import time
 
@@ -9,7 +9,9 @@ import numpy as np
 from bench import step_time
 from bench.states import PlanningState, settings, solver_step
 from data.world import backfill
-from planner import mpc, qp
+from distill.predictors import ConstantVelocity
+from planner import jit_zstep, mpc, qp
+from planner.gradients import ExactLocal
 from planner.setup import make
 
 
@@ -34,6 +36,22 @@ def test_profile_counts_osqp_solves_and_splits_the_step(monkeypatch):
     assert calls["DAQP solves"] > 0 and "OSQP solves" not in calls and ms["compiled kernels (numba)"] > 0
     keys = [step_time.profile_key("analytic", k) for k in [*ms, *calls, "<frozen importlib._bootstrap>"]]
     assert all(re.fullmatch(r"profile_analytic_[A-Za-z0-9_.-]+", k) for k in keys)  # names MLflow accepts
+
+
+def test_profile_counts_the_daqp_solves_inside_a_one_call_admm_solve(monkeypatch):
+    """cv's ADMM solve is one compiled call, which cProfile cannot see into: its DAQP count (the handles' counter) equals
+    cProfile's count of the same solves driven from Python."""
+    scenario, _, s = make("two_lane", ["gradients=cv"])
+    source = ExactLocal("cv", ConstantVelocity())
+    z = scenario.make_world(0).z
+    z[0, 1], z[0, 2] = 1.6, 0.15
+    states = [PlanningState("two_lane", mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), None)]
+    solver_step()(s, states[0].obs, source, None)
+    ms, calls = step_time.profile(solver_step(), source, lambda scenario: s, states)
+    assert calls["one-call ADMM solves"] == 1 and ms["ADMM solve, one compiled call (numba + DAQP)"] > 0
+    monkeypatch.setattr(jit_zstep, "compiled_params", lambda source: None)
+    _, driven = step_time.profile(solver_step(), source, lambda scenario: s, states)
+    assert "one-call ADMM solves" not in driven and calls["DAQP solves"] == driven["DAQP solves called from Python"] > 0
 
 
 def test_profile_splits_a_known_step_per_state():
