@@ -3,7 +3,6 @@ import copy
 import dataclasses
 from pathlib import Path
 
-import daqp
 import numpy as np
 import osqp
 import pytest
@@ -132,18 +131,12 @@ def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
     assert "solver failure (OSQP primal infeasible)" in result.fallback and np.all(np.isfinite(result.u))
 
 
-def test_daqp_failure_falls_back(two_lane, sqp, monkeypatch):
+def test_daqp_failure_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
-
-    class Failing(daqp.Model):  # every Z-step QP ends infeasible (DAQP's exit flag -1)
-        def solve(self):
-            x, fval, _, info = super().solve()
-            return x, fval, -1, info
-
-    monkeypatch.setattr(daqp, "Model", Failing)
-    result = mpc.mpc_step(dataclasses.replace(s, core="compiled"), obs, cv, None, sqp)
-    assert "solver failure (DAQP exit flag -1)" in result.fallback and np.all(np.isfinite(result.u))
+    crossed = dataclasses.replace(s, core="compiled", delta_box=(0.1, -0.1))  # lower above upper: DAQP refuses the box QP
+    result = mpc.mpc_step(crossed, obs, cv, None, sqp)
+    assert "solver failure (DAQP exit flag -" in result.fallback and np.all(np.isfinite(result.u))
 
 
 def test_unknown_names_and_missing_models_are_one_line_errors(tmp_path):
