@@ -493,8 +493,14 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
         lines += ["## MPC step time", "", "One MPC step per source on saved planning states, one thread (training seed "
                   f"{seeds[0]}).", ""]
         lines += markdown(["source", "median ms", "p95 ms", "ADMM iterations"],
-                          [[n, fmt(b[f"{n}_ms_median"], ".0f"), fmt(b[f"{n}_ms_p95"], ".0f"), fmt(b[f"{n}_iters_mean"], ".1f")]
+                          [[n, fmt(b[f"{n}_ms_median"], ".1f"), fmt(b[f"{n}_ms_p95"], ".1f"), fmt(b[f"{n}_iters_mean"], ".1f")]
                            for n in names])
+        ratios = [f"{k.removeprefix('ratio_').replace('_', '/', 1)} {v:.1f}x" for k, v in b.items()
+                  if k.startswith("ratio_") and not k.startswith("ratio_ipopt_")]
+        ipopt = [f"{k.removeprefix('ratio_ipopt_')} {v:.2f}x (median cost gap {b[f'gap_{k[12:]}_median']:+.2%})"
+                 for k, v in b.items() if k.startswith("ratio_ipopt_")]
+        lines += [f"Median ratios: {', '.join(ratios)}. IPOPT's time over ADMM's on the same states (> 1: ADMM faster): "
+                  f"{', '.join(ipopt) or 'n/a (no CasADi)'}. `make bench` prints where the time goes.", ""]
     for f in ("snapshots_admm.png", "merge_admm.gif", "snapshots_nnmpc.png", "merge_nnmpc.gif"):
         if (work / "showcase" / f).exists():
             shutil.copyfile(work / "showcase" / f, dest / f)

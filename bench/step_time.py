@@ -272,6 +272,10 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
     for a, b in st.ratios:
         key = f"ratio_{a}_{b}"
         lines.append(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
+    firsts = {k.removesuffix("_first_ms"): v for k, v in metrics.items() if k.endswith("_first_ms")}
+    if firsts:
+        lines.append("first step in this process (the kernels from numba's cache, sessions and NLPs built): "
+                     + ", ".join(f"{k} {v:.0f} ms" for k, v in firsts.items()))
     for name in st.ipopt:
         if f"ratio_ipopt_{name}" in metrics:
             m = lambda k: metrics[k.format(name)]
@@ -300,16 +304,20 @@ def run(cfg: DictConfig) -> dict:
                                  seed=cfg.states.seed)
         srcs = sources(cfg.models_dir)
         others = ipopt_steps(srcs, cfg.step_time.ipopt)
-        # warm-up: first calls pay for imports, allocations, onnxruntime's graph setup and building the IPOPT NLPs
-        for step, src in [(solver_step(), src) for src in srcs.values()] + list(others.values()):
+        # warm-up: first calls pay for imports, loading the compiled kernels from numba's cache, allocations,
+        # onnxruntime's graph setup and building the IPOPT NLPs; the very first step of each is reported
+        first = {}
+        for name, (step, src) in {**{n: (solver_step(), src) for n, src in srcs.items()}, **others}.items():
             for scenario in sorted({st.scenario for st in states}):
                 st = next(st for st in states if st.scenario == scenario)
+                t0 = time.perf_counter()
                 step(settings(scenario), st.obs, src, st.warm)
+                first.setdefault(f"{name}_first_ms", 1e3 * (time.perf_counter() - t0))
         timings = time_steps(srcs, states, cfg.step_time.repeats, others)
         timings.update(variants(cfg, srcs, states))
         profiles = {name: profile(solver_step(), srcs[name], settings, states) for name in cfg.step_time.profile
                     if name in srcs}
-    metrics = summary(timings, cfg.step_time)
+    metrics = {**summary(timings, cfg.step_time), **first}
     log.info("\n%s", table(timings, srcs, metrics, states, cfg.step_time))
     for name, (ms, calls) in profiles.items():
         log.info("\n%s", profile_table(name, ms, calls))
