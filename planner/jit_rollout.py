@@ -2,9 +2,11 @@
 velocity and the GELU student from its float64 weights), and b_i with its Jacobian about a linearisation; the layouts of
 core.rollout (metres throughout), which stays the tested reference."""
 import math
+from functools import lru_cache
 
 import numpy as np
 from numba import njit
+from numba.typed import List
 
 from core.rollout import rollout_jacobian
 from distill.models import StudentPredictor
@@ -70,7 +72,7 @@ def gelu(a):
 
 @njit(cache=True)
 def student_phi_jac(Ws, bs, s, window):
-    """The GELU student (distill.student) from its float64 weights (tuples of the layers' W and b, P folded into the
+    """The GELU student (distill.student) from its float64 weights (typed lists of the layers' W and b, P folded into the
     first W): next xy (SLOTS, 2) and its exact local Jacobian (SLOTS*2, T_obs*SLOTS*2), the others' rows by one
     reverse sweep for all 2N outputs."""
     T_obs, M, _ = window.shape
@@ -139,7 +141,19 @@ def predicted(Ws, bs, s, history, ego):
     return student_rollout(Ws, bs, s, history, ego)
 
 
-CV_PARAMS = ((np.zeros((1, 1)),), (np.zeros(1),), np.zeros(0))  # `predicted`'s placeholders for constant velocity
+def typed(arrays) -> List:
+    """A numba typed list of float64 arrays: one numba type whatever its length, so cv's placeholders and every student
+    depth share one compilation of the kernels that take them (a tuple's type would fix its length)."""
+    out = List()
+    for a in arrays:
+        out.append(np.ascontiguousarray(a, float))
+    return out
+
+
+@lru_cache(maxsize=1)
+def cv_params():
+    """`predicted`'s placeholders for constant velocity: one 1 x 1 layer, no head scale."""
+    return typed([np.zeros((1, 1))]), typed([np.zeros(1)]), np.zeros(0)
 
 
 def compiled_params(source):
@@ -148,10 +162,10 @@ def compiled_params(source):
     if not isinstance(source, ExactLocal):
         return None
     if isinstance(source.predictor, ConstantVelocity):
-        return CV_PARAMS
+        return cv_params()
     if isinstance(source.predictor, StudentPredictor):
-        return (tuple(np.ascontiguousarray(W) for W, _ in source.predictor.weights),
-                tuple(np.ascontiguousarray(b) for _, b in source.predictor.weights), np.ascontiguousarray(source.predictor.s))
+        return (typed(W for W, _ in source.predictor.weights), typed(b for _, b in source.predictor.weights),
+                np.ascontiguousarray(source.predictor.s))
     return None
 
 

@@ -79,7 +79,7 @@ def test_compiled_rollout_equals_the_reference_chain_rule(name, states):
 
 def test_compiled_student_jacobian_matches_central_differences(states):
     pred = StudentPredictor(smooth_student())
-    Ws, bs = tuple(W for W, _ in pred.weights), tuple(b for _, b in pred.weights)
+    Ws, bs, _ = jit_rollout.compiled_params(ExactLocal("student", pred))
     window = np.ascontiguousarray(states[3].obs.history)
     _, J = jit_rollout.student_phi_jac(Ws, bs, pred.s, window)
     h, flat = 1e-5, window.reshape(-1)

@@ -23,7 +23,7 @@ from core.jobs import UserError, guarded, mlflow_run
 from data.world import backfill
 from distill.models import StudentPredictor, TorchPredictor
 from distill.train import make_trainer
-from planner import cli, jit_rollout, mpc, setup
+from planner import cli, jit_admm, jit_rollout, mpc, setup
 from planner.compare import run as compare
 from planner.setup import check_window, planner_config
 
@@ -110,7 +110,8 @@ def test_an_unexpected_error_in_a_step_is_a_fallback_with_its_reason(monkeypatch
         raise ValueError("matmul: size 80 is different from 30")
 
     monkeypatch.setattr(source, "jacobian", broken)
-    monkeypatch.setattr(jit_rollout, "cv_rollout", broken)  # the compiled core's own rollout of cv (mpc.core=compiled)
+    monkeypatch.setattr(jit_rollout, "predicted", broken)  # the compiled core's own rollout of cv (mpc.core=compiled)
+    monkeypatch.setattr(jit_admm, "admm_loop", broken)  # and its one-call ADMM solve
     for w in (None, warm):
         r = step(s, obs, source, w)
         assert r.reason == "fallback" and r.fallback.startswith("step error (ValueError: matmul: size 80 is different from 30)")
