@@ -1,5 +1,6 @@
 """`make bench`: wall time (ms) of one ADMM-NNMPC step per gradient source on the saved planning states, single-threaded,
-beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls) and the full-NLP baseline
+beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls, driven from Python as the
+surrogate's and the teacher's solves are; cv and the student solve in one compiled call, below it) and the full-NLP baseline
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
 (cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
 (`<source>-ref`: mpc.core=reference, numpy and OSQP) and at a longer horizon (`<source>-T16`); then a profile of where

@@ -10,7 +10,7 @@ from planner import daqp_qp
 from planner.admm import ADMMState, Problem, Solve, Solvers
 from planner.daqp_qp import NO_ROWS, DaqpBox, optimal
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_zstep import CompiledSQPZStep, sqp_z_update
+from planner.jit_zstep import CompiledSQPZStep, z_update
 
 
 @njit(cache=True)
@@ -87,9 +87,9 @@ def box_update(qp, cold, P, lo, hi, update):
 @njit(cache=True)
 def admm_loop(dyn, d_box, a_box, zp, sqp, pred, rows_of, n_b, z_qp, lin, Delta, alpha, Z, mu, radius, fresh, max_iters,
               tol_F, tol_step):
-    """admm_solve's sweeps as one kernel for a compiled predictor (planner.jit_zstep.sqp_z_update): dyn = (A, B, C, D);
+    """admm_solve's sweeps as one kernel for a compiled predictor (planner.jit_zstep.z_update): dyn = (A, B, C, D);
     d_box, a_box = (P, P^-1, Phi's q, box lo, hi, DAQP handle) of the Delta and alpha updates; the Z-step's zp, sqp, pred, rows_of,
-    n_b, handle z_qp and linearisation lin as sqp_z_update's; (radius, fresh) its carried state. Returns (Delta, alpha, Z,
+    n_b, handle z_qp and linearisation lin as z_update's; (radius, fresh) its carried state. Returns (Delta, alpha, Z,
     mu, radius, fresh, lin, iterations, converged, ||F||, iterate change, the last Z-step's info, DAQP's exit flag)."""
     A, B, C, D = dyn
     P_1, P_1_inv, q_1, lo_1, hi_1, d_qp = d_box
@@ -109,7 +109,7 @@ def admm_loop(dyn, d_box, a_box, zp, sqp, pred, rows_of, n_b, z_qp, lin, Delta, 
         a_cold = a_cold and not called
         if flag < 1:
             break
-        new_Z, radius, lin, info, flag = sqp_z_update(zp, sqp, pred, rows_of, n_b, z_qp, z_cold, lin, Z, mu,
+        new_Z, radius, lin, info, flag = z_update(zp, sqp, pred, rows_of, n_b, z_qp, z_cold, lin, Z, mu,
                                                       z_residual(A, B, C, D, new_Delta, new_alpha, Z), radius, fresh)
         z_cold, fresh = False, False
         if flag < 1:

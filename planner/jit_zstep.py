@@ -1,7 +1,7 @@
 """The compiled core's Z-step (mpc.core=compiled): planner.zstep's trust-region SQP with its arithmetic in numba kernels,
 b_i from the compiled rollouts (planner.jit_rollout) and each QP solved by DAQP with the linearised b_i >= 0 as soft
 rows priced by the L1 slack penalty (planner.daqp_qp), so the slack needs no variables of its own. For the predictors
-the core runs itself (cv, the student) the whole SQP is one kernel (sqp_z_update, called inside planner.jit_admm's
+the core runs itself (cv, the student) the whole SQP is one kernel (z_update, called inside planner.jit_admm's
 compiled loop); for the others (their Jacobians from Python) CompiledSQPZStep drives the same kernels from Python."""
 from functools import partial
 
@@ -143,7 +143,7 @@ def safety_rows(pred, rows_of, lin, Z, reuse_radius):
 
 
 @njit(cache=True)
-def sqp_z_update(zp, sqp, pred, rows_of, n_b, qp, cold, lin, Z, mu, c_Z, radius, fresh):
+def z_update(zp, sqp, pred, rows_of, n_b, qp, cold, lin, Z, mu, c_Z, radius, fresh):
     """CompiledSQPZStep.__call__ as one kernel for a compiled predictor: Z_{k+1} from Z_k by trust-region SQP.
 
     zp = (H, Phi_3's q, C, rho, state box lo, hi, trust-region mask); sqp = SQPSettings' numbers (max_iters,
