@@ -22,18 +22,15 @@ def step(z, u, p: BicycleParams):
     """One forward-Euler step z(tau+1) = f(delta, a, z); z (..., 4), u (..., 2) -> (..., 4). Speed may go negative."""
     z = np.asarray(z, dtype=float)
     u = np.asarray(u, dtype=float)
-    x, y, psi, v = np.moveaxis(z, -1, 0)
-    delta, a = np.moveaxis(u, -1, 0)
-    beta = slip_angle(delta, p)
-    return np.stack(
-        [
-            x + p.dt * v * np.cos(psi + beta),
-            y + p.dt * v * np.sin(psi + beta),
-            psi + p.dt * v / p.l_r * np.sin(beta),
-            v + p.dt * a,
-        ],
-        axis=-1,
-    )
+    x, y, psi, v = z[..., 0], z[..., 1], z[..., 2], z[..., 3]
+    beta = slip_angle(u[..., 0], p)
+    # filled column by column: np.stack's and moveaxis' overhead was a fifth of a compiled MPC step (18 steps of 1 car)
+    out = np.empty(np.broadcast_shapes(z.shape[:-1], u.shape[:-1]) + (4,))
+    out[..., 0] = x + p.dt * v * np.cos(psi + beta)
+    out[..., 1] = y + p.dt * v * np.sin(psi + beta)
+    out[..., 2] = psi + p.dt * v / p.l_r * np.sin(beta)
+    out[..., 3] = v + p.dt * u[..., 1]
+    return out
 
 
 def linearize(z_tilde, delta_tilde, a_tilde, p: BicycleParams):

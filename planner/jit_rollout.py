@@ -3,6 +3,7 @@ velocity and the GELU student from its float64 weights), and b_i with its Jacobi
 core.rollout (metres throughout), which stays the tested reference."""
 import math
 from functools import lru_cache
+from weakref import WeakKeyDictionary
 
 import numpy as np
 from numba import njit
@@ -164,9 +165,15 @@ def compiled_params(source):
     if isinstance(source.predictor, ConstantVelocity):
         return cv_params()
     if isinstance(source.predictor, StudentPredictor):
-        return (typed(W for W, _ in source.predictor.weights), typed(b for _, b in source.predictor.weights),
-                np.ascontiguousarray(source.predictor.s))
+        if source.predictor not in _student_params:  # typed lists are slow to build from Python: once per student
+            _student_params[source.predictor] = (typed(W for W, _ in source.predictor.weights),
+                                                 typed(b for _, b in source.predictor.weights),
+                                                 np.ascontiguousarray(source.predictor.s))
+        return _student_params[source.predictor]
     return None
+
+
+_student_params = WeakKeyDictionary()  # compiled_params of each live StudentPredictor
 
 
 def compiled_jacobian(source):
