@@ -133,7 +133,7 @@ def student_rollout(Ws, bs, s, history, ego):
     return values, chain_rule(Js, T_obs)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def predicted(Ws, bs, s, history, ego):
     """Rollout values (T_p, SLOTS, 2) and d values / d ego plan (T_p, SLOTS, 2, T_p, 2) of a predictor the compiled core
     runs itself (compiled_params): constant velocity when s is empty, else the student from its float64 weights."""

@@ -126,7 +126,7 @@ def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambd
     return False, max(0.5 * radius, min_radius), step
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def safety_rows(pred, rows_of, lin, Z, reuse_radius):
     """CompiledSafety.linearize as a kernel: the rows at Z and their d / d Z about the linearisation `lin` (ego0, values0,
     grads, taken), taken anew from the compiled predictor pred = (Ws, bs, s, history, x_obs) where Z's ego xy lie more
@@ -142,7 +142,7 @@ def safety_rows(pred, rows_of, lin, Z, reuse_radius):
     return b, Jb, lin
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def z_update(zp, sqp, pred, rows_of, n_b, qp, cold, lin, Z, mu, c_Z, radius, fresh):
     """CompiledSQPZStep.__call__ as one kernel for a compiled predictor: Z_{k+1} from Z_k by trust-region SQP.
 
