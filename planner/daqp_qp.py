@@ -46,7 +46,7 @@ class Handle(NamedTuple):
     bu: np.ndarray  # (n + rows,) [box; rows] upper bounds, the rows' absent
     bl: np.ndarray  # (n + rows,)
     sense: np.ndarray  # (n + rows,) int32: the cold start's constraint senses
-    calls: np.ndarray  # SOLVES
+    calls: np.ndarray  # SOLVES, the process-wide count every handle adds its solves to
 
 
 def _free(work):
