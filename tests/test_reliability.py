@@ -262,7 +262,7 @@ def test_interaction_values_are_checked():  # the bench's values: test_robustnes
     ("distill", "modle.epochs=3", "Could not override 'modle.epochs'. Key 'modle' is not in struct."),
     ("make_dataset", "dataset.nme=x", "Could not override 'dataset.nme'. Key 'nme' is not in struct."),
     ("results", "bootstrap.resample=3", "Could not override 'bootstrap.resample'. Key 'resample' is not in struct."),
-    ("distill", "model=studnet", "unknown model 'studnet'; choose one of student, student_certifiable, teacher"),
+    ("distill", "model=studnet", "unknown model 'studnet'; choose one of student, student_certifiable, student_wide, teacher"),
 ])
 def test_a_misspelt_key_or_option_is_one_line(config, override, message):
     with pytest.raises(UserError) as e:

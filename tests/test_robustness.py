@@ -275,7 +275,7 @@ NO_GROUPS = ["none: every setting is a key below"]
 @pytest.mark.parametrize("command,groups,foreign", [
     ("make-dataset", ["dataset: large | small | tiny  (now small)", "scenario: dense | dense_three_lane | highway | highway_three_lane | random | three_lane | two_lane  (now dense)"],
      ["model:", "trainer:"]),
-    ("distill", ["model: student | student_certifiable | teacher  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
+    ("distill", ["model: student | student_certifiable | student_wide | teacher  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
     ("surrogate", ["paper: table1  (now table1)"], ["dataset:", "model:", "scenario:", "trainer:"]),
     ("compare", NO_GROUPS, ["dataset:", "gradients:", "model:", "paper:", "scenario:", "trainer:"]),
     ("python -m bench.step_time", NO_GROUPS, ["dataset:", "gradients:", "model:", "paper:", "scenario:", "trainer:"]),
