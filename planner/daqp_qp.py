@@ -49,10 +49,10 @@ class Handle(NamedTuple):
     calls: np.ndarray  # SOLVES, the process-wide count every handle adds its solves to
 
 
-def _free(work):
-    """Release what DAQP allocated inside a workspace."""
-    _lib.free_daqp_workspace(ctypes.c_void_p(work.ctypes.data))
-    _lib.free_daqp_ldp(ctypes.c_void_p(work.ctypes.data))
+def _free(address: int):
+    """Release what DAQP allocated inside the workspace at `address`."""
+    _lib.free_daqp_workspace(ctypes.c_void_p(address))
+    _lib.free_daqp_ldp(ctypes.c_void_p(address))
 
 
 def handle(n: int, rows: int = 0, soft: bool = False, price: float = 0.0) -> Handle:
@@ -67,7 +67,9 @@ def handle(n: int, rows: int = 0, soft: bool = False, price: float = 0.0) -> Han
     h.res[0] = h.x.ctypes.data  # res.lam stays NULL: no multipliers wanted
     work = ctypes.c_void_p(h.work.ctypes.data)
     _lib.allocate_daqp_settings(work)
-    weakref.finalize(h.work, _free, h.work)
+    # by address: an argument holding the array would keep it alive for ever; numpy clears an array's weak references
+    # before it frees its buffer, so the workspace is still readable when _free runs
+    weakref.finalize(h.work, _free, h.work.ctypes.data)
     if _lib.setup_daqp_main(ctypes.c_void_p(h.qp.ctypes.data), work, ctypes.byref(ctypes.c_double()), 0) < 0:
         raise SolverFailure(f"DAQP could not set up a QP of {n} variables and {rows} rows")
     if soft:

@@ -1,6 +1,9 @@
 """The compiled core (mpc.core=compiled: numba kernels, DAQP) gives the reference core's plans (numpy, OSQP solved
 tight) on saved planning states for every source it runs, and its compiled rollouts, network Jacobians and b_i
 gradients match the reference maths and central differences."""
+import gc
+import weakref
+
 import daqp
 import numpy as np
 import pytest
@@ -210,3 +213,14 @@ def test_one_call_admm_solve_equals_the_same_kernels_driven_from_python(name, st
         assert (a.reason, a.iters, a.fallback) == (b.reason, b.iters, b.fallback)
         if a.plan is not None:
             assert np.abs(a.plan.Z - b.plan.Z).max() < 1e-7 and np.abs(a.u - b.u).max() < 1e-9
+
+
+def test_a_dropped_daqp_workspace_is_released():
+    """A handle's workspace is freed with it: nothing (its finaliser included) keeps it alive, so a long batch that
+    builds Z-steps from Python does not grow without bound."""
+
+    h = daqp_qp.handle(4, 2, True, 1.0)
+    work = weakref.ref(h.work)
+    del h
+    gc.collect()
+    assert work() is None
