@@ -497,8 +497,8 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
                            for n in names])
         ratios = [f"{k.removeprefix('ratio_').replace('_', '/', 1)} {v:.1f}x" for k, v in b.items()
                   if k.startswith("ratio_") and not k.startswith("ratio_ipopt_")]
-        ipopt = [f"{k.removeprefix('ratio_ipopt_')} {v:.2f}x (median cost gap {b[f'gap_{k[12:]}_median']:+.2%})"
-                 for k, v in b.items() if k.startswith("ratio_ipopt_")]
+        ipopt = [f"{n} {b[f'ratio_ipopt_{n}']:.2f}x (median cost gap {b[f'gap_{n}_median']:+.2%})"
+                 for n in (k.removeprefix("ratio_ipopt_") for k in b if k.startswith("ratio_ipopt_"))]
         lines += [f"Median ratios: {', '.join(ratios)}. IPOPT's time over ADMM's on the same states (> 1: ADMM faster): "
                   f"{', '.join(ipopt) or 'n/a (no CasADi)'}. `make bench` prints where the time goes.", ""]
     for f in ("snapshots_admm.png", "merge_admm.gif", "snapshots_nnmpc.png", "merge_nnmpc.gif"):
