@@ -40,7 +40,7 @@ def violation(s: mpc.Settings, state, source, plan):
     if plan is None:
         return np.nan
     values = source.values(state.obs.history, ego_xy(plan.Z, s.T_p)[None])[0]
-    return float(max(0.0, -b_i(values, s.R, s.stretch).min(initial=np.inf)))
+    return float(max(0.0, -b_i(values, s.R, s.stretch, s.shape).min(initial=np.inf)))
 
 
 def step(state, source, zstep: str):

@@ -78,25 +78,39 @@ def ego_xy(Z, T_p):
     return Z.reshape(T_p, 4)[:, :2]
 
 
-def b_i(values, R, stretch=1.0):
+def b_i(values, R, stretch=1.0, p=2.0):
     """d_i (N, T_p) in m^2: (dx / stretch)^2 + dy^2 - R^2 between the ego's and car i's centres, R = r + r_i + eps (m);
     values (T_p, SLOTS, 2). At stretch 1 the paper's circle, eq. (6); above 1 an ellipse stretch * R long along the road,
-    for bodies longer than they are wide."""
+    for bodies longer than they are wide. With p > 2 the same semi-axes on a superellipse, R^2 (|dx / (stretch R)|^p +
+    |dy / R|^p)^(2/p) - R^2, which hugs two rectangular bodies more closely: p = 2 is the ellipse."""
     sq = (values[:, :1] - values[:, 1:]) ** 2
-    return (sq[..., 0] / stretch**2 + sq[..., 1]).T - R**2  # numpy or torch alike: PyGranso back-propagates through it
+    if p == 2.0:
+        return (sq[..., 0] / stretch**2 + sq[..., 1]).T - R**2  # numpy, torch or CasADi alike: PyGranso back-propagates through it
+    S = (sq[..., 0] / (stretch * R) ** 2) ** (p / 2) + (sq[..., 1] / R**2) ** (p / 2)  # |u|^p as (u^2)^(p/2): no abs
+    return (R**2 * S ** (2 / p)).T - R**2
 
 
-def b_i_jacobian(values, grads, R, stretch=1.0):
+def b_i_jacobian(values, grads, R, stretch=1.0, p=2.0):
     """b_i (N*T_p,) and d b_i / d Z (N*T_p, 4T_p), from rollout values (T_p, SLOTS, 2) and d values / d ego xy (T_p, SLOTS, 2, T_p, 2)."""
     T_p = len(values)
-    w = np.array([1.0 / stretch**2, 1.0])  # d b_i / d gap = 2 w gap
     gap = values[:, :1] - values[:, 1:]  # (T_p, N, 2)
+    w = shape_weights(gap, R, stretch, p)  # d b_i / d gap = 2 w gap
     dgap = grads[:, :1] - grads[:, 1:]  # (T_p, N, 2, T_p, 2)
     db = 2.0 * np.einsum("tnk,tnkse->ntse", gap * w, dgap)  # (N, T_p, T_p, 2): d b_i(t) / d ego xy(s)
     n = db.shape[0]
     dZ = np.zeros((n, T_p, T_p, 4))
     dZ[..., :2] = db  # b depends on Z only through the ego's x, y
-    return b_i(values, R, stretch).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
+    return b_i(values, R, stretch, p).reshape(-1), dZ.reshape(n * T_p, 4 * T_p)
+
+
+def shape_weights(gap, R, stretch=1.0, p=2.0):
+    """w (..., 2) with d b_i / d gap = 2 w gap for gaps (..., 2) (m) ego minus car: (1 / stretch^2, 1) on the ellipse;
+    on the superellipse R^2 S^(2/p - 1) |u|^(p - 2) / a^2 per axis, u = gap / a, a = (stretch R, R), S = sum |u|^p."""
+    if p == 2.0:
+        return np.array([1.0 / stretch**2, 1.0])
+    a = np.array([stretch * R, R])
+    u = np.abs(gap / a)
+    return R**2 * (u**p).sum(-1, keepdims=True) ** (2 / p - 1) * u ** (p - 2) / a**2
 
 
 def accelerations(values, history, dt):

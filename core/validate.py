@@ -303,7 +303,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
     "T_obs": Int(2, 21), "n_slots": Int(1), "plots": Bool(), "tolerate_crashes": Bool(),
     "mpc.T_p": Int(1), "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
-    "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, "mpc.stretch": Real(1), **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
+    "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, "mpc.stretch": Real(1), "mpc.shape": Real(2), **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
     "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
     "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),
     "mpc.osqp.adaptive_rho_interval": Int(0, optional=True),

@@ -5,7 +5,7 @@ A Delta + B alpha + C Z + D = 0 with the matrices planner.dynamics builds; J = P
 same boxes; and b_i(Z) >= 0 on the predictor's Remark-2 rollout written symbolically. The rollout is core.rollout's own
 recursion run over numpy arrays of CasADi scalars, so CV and analytic are their numpy formulas verbatim and the student is
 its float64 weights with GELU by erf. IPOPT gets exact first and second derivatives of that expression from CasADi.
-The NLP is built once per (source, T_p, T_obs, R, stretch, weights, IPOPT options) and reused: z0, u_prev (through A, B, C, D and
+The NLP is built once per (source, T_p, T_obs, R, stretch, p, weights, IPOPT options) and reused: z0, u_prev (through A, B, C, D and
 the rate terms), the history and the references are its parameters. `pip install -e '.[ipopt]'` installs CasADi.
 """
 from functools import lru_cache
@@ -90,7 +90,7 @@ class NLP(NamedTuple):
 
 
 @lru_cache(maxsize=16)
-def nlp(source, T_p: int, T_obs: int, R: float, stretch: float, weights: cost.Weights, options: tuple) -> NLP:
+def nlp(source, T_p: int, T_obs: int, R: float, stretch: float, p: float, weights: cost.Weights, options: tuple) -> NLP:
     """The step's NLP for `source`'s predictor (built once: the student's symbolic Hessian takes a while)."""
     ca = import_casadi()
     phi = expression(source)
@@ -115,7 +115,7 @@ def nlp(source, T_p: int, T_obs: int, R: float, stretch: float, weights: cost.We
     history = ca.SX.sym("history", T_obs * SLOTS * 2)
     hist = np.array([history[k] for k in range(history.numel())], dtype=object).reshape(1, T_obs, SLOTS, 2)
     ego = np.array([[Z[4 * t], Z[4 * t + 1]] for t in range(T_p)], dtype=object)[None]
-    b = b_i(rollout(phi, hist, ego)[0], R, stretch).reshape(-1)  # (N*T_p,), the order planner.safety uses
+    b = b_i(rollout(phi, hist, ego)[0], R, stretch, p).reshape(-1)  # (N*T_p,), the order planner.safety uses
     problem = {"x": ca.vertcat(Delta, alpha, Z), "p": ca.vertcat(*params, D, history), "f": J, "g": ca.vertcat(F, *b)}
     solver = ca.nlpsol("mpc_step", "ipopt", problem, {"ipopt": dict(options), "print_time": False})
     return NLP(solver, *patterns)
@@ -134,7 +134,7 @@ def ipopt_step(s: mpc.Settings, obs: mpc.Observation, source, warm, options: dic
     options are IPOPT's own (conf/solver/ipopt.yaml)."""
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
         return mpc.fallback(s, obs, source, warm, "non-finite observation")
-    net = nlp(source, s.T_p, len(obs.history), s.R, s.stretch, s.weights, tuple(sorted(options.items())))
+    net = nlp(source, s.T_p, len(obs.history), s.R, s.stretch, s.shape, s.weights, tuple(sorted(options.items())))
     start, dyn = mpc.start_point(s, obs, warm)
     lo, hi = mpc.state_box(s)
     T4 = 4 * s.T_p

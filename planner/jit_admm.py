@@ -137,7 +137,7 @@ def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, to
            s.reuse_radius)
     dt, b_c = safety.courtesy or (1.0, 0.0)  # unread without courtesy rows
     pred = (*safety.params, safety.history, safety.x_obs)
-    rows_of = (float(safety.R), float(safety.stretch), float(dt), float(b_c), bool(safety.courtesy))
+    rows_of = (float(safety.R), float(safety.stretch), float(safety.p), float(dt), float(b_c), bool(safety.courtesy))
     T_p, M = len(st.Delta), safety.history.shape[1]
     lin = (np.zeros((T_p, 2)), np.zeros((T_p, M, 2)), np.zeros((T_p, M, 2, T_p, 2)), False)
     z_qp = daqp_qp.shared("z", len(zs.H), safety.rows, zs.hard, float(s.slack_penalty))  # hard form: elastic (soft) rows

@@ -208,31 +208,38 @@ def affine_values(Z, ego0, values0, grads):
 
 
 @njit(cache=True)
-def rows_affine(Z, ego0, values0, grads, R, stretch, x_obs, dt, b_c, courtesy):
+def rows_affine(Z, ego0, values0, grads, R, stretch, p, x_obs, dt, b_c, courtesy):
     """The Safety's rows at the plan Z (4T_p,) and their d / d Z (rows, 4T_p), with the others' rollout values affine
     about a linearisation (ego0, values0 (T_p, SLOTS, 2), grads (T_p, SLOTS, 2, T_p, 2)), the ego slot moving exactly
-    with Z: b_i (N*T_p, m^2; core.rollout.b_i's shape: R m, stretch), then with `courtesy` c_i = a_i + b_c (N*T_p, m/s^2; x_obs (2, SLOTS): the last two
+    with Z: b_i (N*T_p, m^2; core.rollout.b_i's shape: R m, stretch, p), then with `courtesy` c_i = a_i + b_c (N*T_p, m/s^2; x_obs (2, SLOTS): the last two
     observed x, dt s). As core.rollout.b_i_jacobian and courtesy_jacobian of planner.safety.Safety.reused, causal
     blocks only."""
     T_p, M = values0.shape[0], values0.shape[1]
     N = M - 1
     n_b = N * T_p
     values = affine_values(Z, ego0, values0, grads)
-    w = 1.0 / stretch**2
+    a_x, w_x = stretch * R, 1.0 / stretch**2
     b, Jb = np.empty(2 * n_b if courtesy else n_b), np.zeros((2 * n_b if courtesy else n_b, 4 * T_p))
     for n in range(N):
         for t in range(T_p):
             row = n * T_p + t
             g0, g1 = values[t, 0, 0] - values[t, n + 1, 0], values[t, 0, 1] - values[t, n + 1, 1]
-            b[row] = g0 * g0 * w + g1 * g1 - R * R
+            if p == 2.0:
+                b[row], w0, w1 = g0 * g0 * w_x + g1 * g1 - R * R, w_x, 1.0
+            else:  # core.rollout.shape_weights
+                u0, u1 = abs(g0) / a_x, abs(g1) / R
+                S = u0**p + u1**p
+                b[row] = R * R * S ** (2.0 / p) - R * R
+                w0 = R * R * S ** (2.0 / p - 1.0) * u0 ** (p - 2.0) / (a_x * a_x)
+                w1 = S ** (2.0 / p - 1.0) * u1 ** (p - 2.0)
             if courtesy:
                 x_1 = values[t - 1, n + 1, 0] if t >= 1 else x_obs[1, n + 1]
                 x_2 = values[t - 2, n + 1, 0] if t >= 2 else x_obs[t, n + 1]
                 b[n_b + row] = (values[t, n + 1, 0] - 2.0 * x_1 + x_2) / dt**2 + b_c
             for s_ in range(t + 1):  # a rollout is causal: step t's values never depend on later plan steps
                 for e in range(2):
-                    Jb[row, 4 * s_ + e] = 2.0 * (g0 * w * (grads[t, 0, 0, s_, e] - grads[t, n + 1, 0, s_, e])
-                                                 + g1 * (grads[t, 0, 1, s_, e] - grads[t, n + 1, 1, s_, e]))
+                    Jb[row, 4 * s_ + e] = 2.0 * (g0 * w0 * (grads[t, 0, 0, s_, e] - grads[t, n + 1, 0, s_, e])
+                                                 + g1 * w1 * (grads[t, 0, 1, s_, e] - grads[t, n + 1, 1, s_, e]))
                     if courtesy:
                         d = grads[t, n + 1, 0, s_, e]
                         if t >= 1:

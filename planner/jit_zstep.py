@@ -21,8 +21,8 @@ class CompiledSafety(Safety):
     """Safety with b_i and its Jacobian from a compiled kernel and, for cv and the student, compiled rollouts (other
     Python-side local Jacobians composed by the compiled chain rule)."""
 
-    def __init__(self, source, history, R, T_p, courtesy=None, stretch=1.0):
-        super().__init__(source, history, R, T_p, courtesy, stretch)
+    def __init__(self, source, history, R, T_p, courtesy=None, stretch=1.0, p=2.0):
+        super().__init__(source, history, R, T_p, courtesy, stretch, p)
         self.history = np.ascontiguousarray(self.history)
         self.x_obs = np.ascontiguousarray(self.history[-2:, :, 0])
         self.params = compiled_params(source)  # planner.jit_rollout.predicted's (Ws, bs, s), or None: Python-side Jacobians
@@ -38,7 +38,8 @@ class CompiledSafety(Safety):
         result is kept, since the SQP step linearises an accepted trial plan again."""
         if self._last is None or self._last[0] is not Z or self._last[1] is not self._lin:
             dt, b_c = self.courtesy or (1.0, 0.0)  # unread without courtesy rows
-            self._last = (Z, self._lin, rows_affine(Z, *self._lin, self.R, self.stretch, self.x_obs, dt, b_c, bool(self.courtesy)))
+            self._last = (Z, self._lin, rows_affine(Z, *self._lin, self.R, self.stretch, self.p, self.x_obs, dt, b_c,
+                                                       bool(self.courtesy)))
         return self._last[2]
 
     def linearize(self, Z, reuse_radius=0.0):
@@ -130,15 +131,15 @@ def verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, hard, slack_penalty, lambd
 def safety_rows(pred, rows_of, lin, Z, reuse_radius):
     """CompiledSafety.linearize as a kernel: the rows at Z and their d / d Z about the linearisation `lin` (ego0, values0,
     grads, taken), taken anew from the compiled predictor pred = (Ws, bs, s, history, x_obs) where Z's ego xy lie more
-    than reuse_radius (m) from it; rows_of = (R, stretch, dt, b_c, courtesy) as rows_affine's. Returns (b, Jb, lin)."""
+    than reuse_radius (m) from it; rows_of = (R, stretch, p, dt, b_c, courtesy) as rows_affine's. Returns (b, Jb, lin)."""
     Ws, bs, s, history, x_obs = pred
-    R, stretch, dt, b_c, courtesy = rows_of
+    R, stretch, p, dt, b_c, courtesy = rows_of
     ego0, values0, grads, taken = lin
     if not taken or offset(Z, ego0) > reuse_radius:
         ego0 = Z.reshape(-1, 4)[:, :2].copy()
         values0, grads = predicted(Ws, bs, s, history, ego0)
         lin = (ego0, values0, grads, True)
-    b, Jb = rows_affine(Z, ego0, values0, grads, R, stretch, x_obs, dt, b_c, courtesy)
+    b, Jb = rows_affine(Z, ego0, values0, grads, R, stretch, p, x_obs, dt, b_c, courtesy)
     return b, Jb, lin
 
 

@@ -37,6 +37,7 @@ class Settings:
     r_i: float  # the others' safety radius (m)
     eps: float  # safety margin (m)
     stretch: float  # the safety ellipse's along-road semi-axis over R (core.rollout.b_i); 1: the paper's circle
+    shape: float  # the exponent p of the safety shape (core.rollout.b_i): 2 the ellipse, higher a rounded rectangle
     b_courtesy: float | None  # courtesy rows: nobody predicted to brake harder than this (m/s^2); None: none (the paper)
     delta_box: tuple  # rad
     a_box: tuple  # m/s^2
@@ -53,7 +54,8 @@ class Settings:
     repair_iters: int  # repair steps (planner.repair) for a plan that fails the check; 0: none, the paper
     repair_margin: float  # b_i (m^2) a repair step aims for on the linearised rollout
     brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
-    starts: tuple  # extra ADMM solves [offset (m), a (m/s^2)], aiming off the target lane (lane_starts); (): none
+    starts: tuple  # extra ADMM solves [offset (m), a (m/s^2), v (m/s) or None: v_ref], aiming off the target lane (lane_starts); (): none
+    progress: float  # m: a plan that ends this much nearer y_ref than the ego is now, or in the target lane, merges (choose)
 
     @property
     def R(self) -> float:
@@ -140,16 +142,16 @@ def linearization(s: Settings, obs: Observation, start: admm.ADMMState):
 
 
 def lane_starts(s: Settings, obs: Observation):
-    """The extra ADMM solves (name, start, settings): for each [offset (m), a (m/s^2)] in s.starts, ADMM aims at
-    y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; ~1.6: lean in, the
-    nudge), starting from holding the lane at a (lane_plan). The target lane's pull would draw every start into the
-    same basin; these solves stay in theirs and compete on the scenario's own cost (choose)."""
+    """The extra ADMM solves (name, start, settings): for each [offset (m), a (m/s^2), v (m/s)] in s.starts, ADMM aims at
+    y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.8: lean in, the
+    nudge) and at v_ref = v (None: the scenario's), starting from holding the lane at a (lane_plan). The target lane's
+    pull would draw every start into the same basin; these solves stay in theirs (choose)."""
     out, lane_y = [], s.road.centre(s.road.lane_of(obs.z0[1]))
-    for offset, a in s.starts:
-        y = lane_y + float(offset) * np.sign(s.y_ref - lane_y)
+    for offset, a, v in s.starts:
+        y, v = lane_y + float(offset) * np.sign(s.y_ref - lane_y), s.v_ref if v is None else float(v)
         Delta, alpha = lane_plan(s, obs.z0, a)
         start = admm.ADMMState(Delta, alpha, simulate(obs.z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
-        out.append((f"y {y:+.1f} m, a {a:+g}", start, replace(s, y_ref=y)))
+        out.append((f"y {y:+.1f} m, v {v:.1f} m/s", start, replace(s, y_ref=y, v_ref=v)))
     return out
 
 
@@ -166,10 +168,10 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
     prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box),
                         tuple(s.a_box), lo, hi)
     if s.core == "compiled":
-        safety = CompiledSafety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch)
+        safety = CompiledSafety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape)
         solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp)
     else:
-        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch), s.osqp)
+        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape), s.osqp)
     return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
 
 
@@ -193,7 +195,7 @@ def rollout(s: Settings, obs: Observation, source, Delta, alpha):
 
 def checked_b(s: Settings, values) -> float:
     """min b_i (m^2) over the first check_steps of a rollout's predictor values (T_p, SLOTS, 2)."""
-    return float(b_i(values, s.R, s.stretch)[:, :s.check_steps].min(initial=np.inf))
+    return float(b_i(values, s.R, s.stretch, s.shape)[:, :s.check_steps].min(initial=np.inf))
 
 
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
@@ -292,13 +294,19 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
                       braking=imposed(s, obs, values)), ""
 
 
-def choose(s: Settings, plans):
-    """The plan to apply among solved (name, StepResult): with several, the least predicted braking above b_courtesy
-    (m/s^2; without courtesy rows, b_safe is not the planner's to judge: none), then the lowest cost J."""
+def choose(s: Settings, plans, y0=0.0):
+    """The plan to apply among solved (name, StepResult, rank), the ego at lateral position y0 (m): with several, the
+    least predicted braking above b_courtesy (m/s^2; without courtesy rows, b_safe is not the planner's to judge:
+    none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than y0) by the lowest cost J;
+    without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an ego that cannot merge yet
+    waits as the first start says instead of pressing on beside the gap (the scenario's J, which pulls towards y_ref,
+    would choose that), then J."""
     if len(plans) == 1:
         return plans[0]
     excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy)
-    return min(plans, key=lambda p: (excess(p[1]), p[1].J))
+    merges = lambda r: (s.road.lane_of(r.plan.Z[-3]) == s.road.lane_of(s.y_ref)
+                        or abs(s.y_ref - y0) - abs(s.y_ref - r.plan.Z[-3]) >= s.progress)
+    return min(plans, key=lambda p: (excess(p[1]), not merges(p[1]), 0 if merges(p[1]) else p[2], p[1].J))
 
 
 def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
@@ -308,7 +316,8 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
     if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
         return fallback(s, obs, source, warm, "non-finite observation")
     plans, whys = [], []
-    for name, start, aim in [("shifted", start_point(s, obs, warm)[0], s), *lane_starts(s, obs)]:
+    solves = [("shifted", start_point(s, obs, warm)[0], s), *lane_starts(s, obs)]
+    for rank, (name, start, aim) in enumerate(solves):
         try:
             result, why = solve_from(aim, obs, source, start, zstep)
         except (SolverFailure, np.linalg.LinAlgError, FloatingPointError) as e:
@@ -320,14 +329,14 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         if result is None:
             whys.append((name, why))
         elif aim is s:
-            plans.append((name, result))
+            plans.append((name, result, len(solves)))
         else:  # judged by the scenario's own cost
-            plans.append((name, result._replace(J=J_of(s, obs.u_prev, result.plan.Delta, result.plan.alpha, result.plan.Z))))
+            plans.append((name, result._replace(J=J_of(s, obs.u_prev, result.plan.Delta, result.plan.alpha, result.plan.Z)), rank))
     if not plans:
         why = whys[0][1] if len({w for _, w in whys}) == 1 else "; ".join(f"{n}: {w}" for n, w in whys)
         try:
             return fallback(s, obs, source, warm, why)
         except Exception:  # the predictor cannot judge the shifted plan either: brake in lane
             return fallback(s, obs, source, None, why)
-    name, result = choose(s, plans)
+    name, result, _ = choose(s, plans, obs.z0[1])
     return result if len(plans) == 1 and not s.starts else result._replace(reason=f"{result.reason}, from {name}")

@@ -52,7 +52,7 @@ def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths, accels) -> 
     cands = candidates(s, obs.z0, lengths, accels)
     egos = np.stack([ego_xy(Z, s.T_p) for _, _, Z in cands])
     values = source.values(obs.history, egos)
-    b_min = np.array([b_i(v, s.R, s.stretch).min(initial=np.inf) for v in values])
+    b_min = np.array([b_i(v, s.R, s.stretch, s.shape).min(initial=np.inf) for v in values])
     Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)
     J = np.array([Phi_1(Delta) + Phi_2(alpha) + Phi_3(Z) for Delta, alpha, Z in cands])
     safe = b_min >= 0.0

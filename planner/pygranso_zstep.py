@@ -133,7 +133,7 @@ def autodiff_b(safety, source):
 
     def b(Z):
         ego = ego_xy(Z, safety.T_p)[None].to(source.dtype)
-        return b_i(rollout(phi, history, ego)[0].double(), safety.R, safety.stretch).reshape(-1)
+        return b_i(rollout(phi, history, ego)[0].double(), safety.R, safety.stretch, safety.p).reshape(-1)
 
     return b
 

@@ -8,12 +8,12 @@ from core.rollout import accelerations, b_i, b_i_jacobian, courtesy_jacobian, eg
 class Safety:
     """The constraint rows of one MPC step, b_i(Z) (N*T_p, m^2) then, with `courtesy` = (dt s, b_c m/s^2), c_i(Z)
     (N*T_p, m/s^2): the gradient source's predictions from `history`, radius R (m) across the road and stretch * R
-    along it (core.rollout.b_i). Keeps the source's last
+    along it, shape exponent p (core.rollout.b_i). Keeps the source's last
     linearisation (the ego plan it was taken at, the rollout values and their derivative), which nearby plans may reuse."""
 
-    def __init__(self, source, history, R, T_p, courtesy=None, stretch=1.0):
+    def __init__(self, source, history, R, T_p, courtesy=None, stretch=1.0, p=2.0):
         self.source, self.history, self.R, self.T_p = source, np.asarray(history, dtype=float), R, T_p
-        self.stretch = stretch
+        self.stretch, self.p = stretch, p
         self.courtesy = courtesy
         self.n_b = (self.history.shape[1] - 1) * T_p  # b_i rows; the courtesy rows follow
         self.rows = self.n_b * (2 if courtesy else 1)
@@ -27,7 +27,7 @@ class Safety:
     def __call__(self, Z):
         """The rows at Z (b_i flattened, then the courtesy rows), from the predictor's values only."""
         values = self.source.values(self.history, self.ego_xy(Z)[None])[0]
-        b = b_i(values, self.R, self.stretch).reshape(-1)
+        b = b_i(values, self.R, self.stretch, self.p).reshape(-1)
         if not self.courtesy:
             return b
         dt, b_c = self.courtesy
@@ -42,7 +42,7 @@ class Safety:
         ego's own position enters b_i exactly, only the others' response is linearised."""
         ego0, values0, grads = self._lin
         values = values0 + np.einsum("tmkse,se->tmk", grads, self.ego_xy(Z) - ego0)  # the ego slot moves exactly with Z
-        b, Jb = b_i_jacobian(values, grads, self.R, self.stretch)
+        b, Jb = b_i_jacobian(values, grads, self.R, self.stretch, self.p)
         if not self.courtesy:
             return b, Jb
         c, Jc = courtesy_jacobian(values, grads, self.history, *self.courtesy)

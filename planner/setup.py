@@ -2,10 +2,12 @@
 closed-loop episode of a method; used by the `planner` command, its batch workers, the benchmarks and the tests."""
 from pathlib import Path
 
+import numpy as np
 from hydra.utils import get_class, get_object
 from omegaconf import DictConfig
 
 from core.jobs import UserError, build, job_config
+from core.rollout import b_i
 from distill import certificate
 from planner import closed_loop, mpc
 from planner.gradients import WorldModel
@@ -48,7 +50,24 @@ def setup(cfg: DictConfig):
                         "themselves: use world=reactive")
     source = build(cfg.gradients)
     check_window(cfg, source.predictor)
-    return scenario, source, settings(cfg, scenario)
+    s = settings(cfg, scenario)
+    check_shape(s)
+    return scenario, source, s
+
+
+def check_shape(s: mpc.Settings) -> None:
+    """One UserError unless a superellipse safety shape (mpc.shape > 2) covers two of the road's bodies, the ego's
+    yawed anywhere within psi_box: the corner of their bounding boxes' sum must lie inside it. The ellipse (shape 2) is
+    the paper's circle or the scenario's own and is left to its config."""
+    if s.shape == 2:
+        return
+    half_l, half_w, psi = s.road.car_length / 2, s.road.car_width / 2, max(abs(a) for a in s.psi_box)
+    dx = half_l + half_l * np.cos(psi) + half_w * np.sin(psi)
+    dy = half_w + half_l * np.sin(psi) + half_w * np.cos(psi)
+    if b_i(np.array([[[0.0, 0.0], [dx, dy]]]), s.R, s.stretch, s.shape)[0, 0] > 0:
+        raise UserError(f"mpc.shape={s.shape:g} with R={s.R:g} m and mpc.stretch={s.stretch:g} does not cover two "
+                        f"{s.road.car_length:g} x {s.road.car_width:g} m bodies with the ego yawed up to {psi:g} rad "
+                        f"(mpc.psi_box): raise mpc.r or mpc.stretch, or narrow mpc.psi_box")
 
 
 def check_window(cfg: DictConfig, predictor) -> None:

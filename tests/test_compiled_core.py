@@ -92,22 +92,23 @@ def test_compiled_student_jacobian_matches_central_differences(states):
     assert np.abs(J[2:]).max() > 1e-3 and np.abs(J - fd).max() < 1e-6
 
 
-@pytest.mark.parametrize("stretch", [1.0, 1.77])  # the paper's circle; highway-env's ellipse
-def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(states, stretch):
-    src, st, R = student_source(), states[3], 3.95
+@pytest.mark.parametrize("stretch, p, R", [(1.0, 2.0, 3.95), (1.77, 2.0, 3.95), (2.05, 6.0, 2.2)])  # the paper's
+def test_compiled_b_i_gradient_matches_the_reference_and_central_differences(states, stretch, p, R):  # circle, highway-env's ellipse, mpc=courteous's superellipse
+    src, st = student_source(), states[3]
     ego0 = ego_xy(st.warm.Z, 8).copy()
     values0, grads = jit_rollout.compiled_jacobian(src)(st.obs.history, ego0)
     ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
     Z.reshape(8, 4)[:, :2] = ego
-    b, Jb = jit_rollout.rows_affine(Z, ego0, values0, grads, R, stretch, st.obs.history[-2:, :, 0].copy(), 0.2, 3.0,
+    b, Jb = jit_rollout.rows_affine(Z, ego0, values0, grads, R, stretch, p, st.obs.history[-2:, :, 0].copy(), 0.2, 3.0,
                                      False)
     affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
-    gap = affine(ego)[:, :1] - affine(ego)[:, 1:]  # (T_p, N, 2), by hand: (dx / stretch)^2 + dy^2 - R^2
-    assert np.allclose(b, ((gap[..., 0] / stretch) ** 2 + gap[..., 1] ** 2 - R**2).T.reshape(-1))
-    want = b_i_jacobian(affine(ego), grads, R, stretch)
+    gap = affine(ego)[:, :1] - affine(ego)[:, 1:]  # (T_p, N, 2), by hand: R^2 (|dx / (stretch R)|^p + |dy / R|^p)^(2/p) - R^2
+    by_hand = R**2 * (np.abs(gap[..., 0] / (stretch * R)) ** p + np.abs(gap[..., 1] / R) ** p) ** (2 / p) - R**2
+    assert np.allclose(b, by_hand.T.reshape(-1))
+    want = b_i_jacobian(affine(ego), grads, R, stretch, p)
     assert np.abs(b - want[0]).max() < 1e-9 and np.abs(Jb - want[1]).max() < 1e-9
     h = 1e-6
-    fd = np.stack([(b_i(affine(ego_xy(Z + h * e, 8)), R, stretch) - b_i(affine(ego_xy(Z - h * e, 8)), R, stretch)).reshape(-1)
+    fd = np.stack([(b_i(affine(ego_xy(Z + h * e, 8)), R, stretch, p) - b_i(affine(ego_xy(Z - h * e, 8)), R, stretch, p)).reshape(-1)
                    / (2 * h)
                    for e in np.eye(Z.size)], axis=1)
     assert np.abs(Jb - fd).max() < 1e-5 * max(1.0, np.abs(Jb).max())
@@ -126,7 +127,7 @@ def test_courtesy_rows_are_the_others_second_differences_and_their_gradient_matc
     ego, Z = ego0 + 0.3, np.tile([0.0, 0.0, 0.1, 5.0], 8)
     Z.reshape(8, 4)[:, :2] = ego
     affine = lambda e: values0 + np.einsum("tmkse,se->tmk", grads, e - ego0)
-    stacked, J = jit_rollout.rows_affine(Z, ego0, values0, grads, 3.95, 1.0, hist[-2:, :, 0].copy(), dt, b_c, True)
+    stacked, J = jit_rollout.rows_affine(Z, ego0, values0, grads, 3.95, 1.0, 2.0, hist[-2:, :, 0].copy(), dt, b_c, True)
     c, Jc = stacked[32:], J[32:]  # after the N*T_p = 32 b_i rows, which stay b_i_jacobian's
     assert np.abs(stacked[:32] - b_i_jacobian(affine(ego), grads, 3.95)[0]).max() < 1e-9
     want = courtesy_jacobian(affine(ego), grads, hist, dt, b_c)

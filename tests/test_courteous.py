@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from core.jobs import UserError
+from core.rollout import b_i
 from planner import admm, mpc
 from planner.safety import Safety
 from planner.setup import make
@@ -11,39 +12,51 @@ from planner.setup import make
 
 @pytest.fixture(scope="module")
 def beside():
-    """mpc=courteous settings and cv on two_lane, the ego in its lane at 5 m/s level with a car in the target lane."""
+    """mpc=courteous settings and cv on two_lane, the ego leaning in by 1.8 m at 5 m/s level with a car in the target
+    lane: on the edge of the safety shape (2.2 m across)."""
     _, source, s = make("two_lane", ["gradients=cv", "mpc=courteous"])
-    z0 = np.array([0.0, 0.0, 0.0, 5.0])
+    z0 = np.array([0.0, 1.8, 0.0, 5.0])
     cars = np.array([[0.5, 4.0], [60.0, 4.0], [80.0, 4.0], [100.0, 4.0]])
     history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
     return s, source, mpc.Observation(z0, np.zeros(2), history)
 
 
-@pytest.mark.parametrize("steer", [0.07, 0.1])
+@pytest.mark.parametrize("steer", [0.05, 0.07])
 def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_least_change(beside, steer):
     s, source, obs = beside
     Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
     b_min, Z = mpc.plan_safe(s, obs, source, Delta, alpha)
-    assert -0.5 < b_min < -s.check_tol  # R = 3.95 m: 0.5 m^2 is 6 cm
-    fixed, b_fixed, _ = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p),
+    assert -0.5 < b_min < -s.check_tol  # 2.2 m across: 0.5 m^2 is 11 cm
+    fixed, b_fixed, _ = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
                                   admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
     assert b_fixed == pytest.approx(mpc.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
     assert b_fixed >= s.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
-    assert 0.0 < np.abs(fixed.Delta - Delta).max() < 0.1 and fixed.Delta[0] < steer  # steered a little less
-    safe = np.full(s.T_p, 0.02)  # a plan that passes is left alone
+    assert 0.0 < np.abs(fixed.Delta - Delta).max() < 0.15 and fixed.Delta[0] < steer  # steered a little less
+    safe = np.full(s.T_p, -0.1)  # steering away: a plan that passes is left alone
     b_safe, Z = mpc.plan_safe(s, obs, source, safe, alpha)
-    out = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p), admm.ADMMState(safe, alpha, Z, 0 * Z))
+    out = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape), admm.ADMMState(safe, alpha, Z, 0 * Z))
     assert out[1] == pytest.approx(b_safe, abs=1e-6) and np.allclose(out[0].Delta, safe, atol=1e-6)
 
 
-def test_the_choice_puts_predicted_excess_braking_before_cost(beside):
+def test_the_choice_puts_predicted_excess_braking_first_then_a_merge_then_the_starts_order(beside):
     s = beside[0]
-    plan = lambda J, braking: mpc.StepResult(np.zeros(2), None, J, 1, "converged", 0.0, 0.0, 0.0, "", braking=braking)
-    forcing, waiting, gentle = plan(1.0, 9.0), plan(5.0, 0.5), plan(4.0, 2.9)  # predicted braking m/s^2
-    assert mpc.choose(s, [("force", forcing), ("wait", waiting)])[0] == "wait"
-    assert mpc.choose(s, [("wait", waiting), ("gentle", gentle)])[0] == "gentle"  # both under b_courtesy: J
-    assert mpc.choose(s, [("force", forcing), ("worse", plan(0.5, 9.5))])[0] == "force"
-    assert mpc.choose(s, [("only", forcing)])[0] == "only"
+
+    def plan(J, braking, y_end, rank=0):  # a StepResult whose plan ends at lateral position y_end (m)
+        Z = np.zeros(4 * s.T_p)
+        Z[-3] = y_end
+        return mpc.StepResult(np.zeros(2), admm.ADMMState(None, None, Z, None), J, 1, "converged", 0.0, 0.0, 0.0, "",
+                              braking=braking), rank
+
+    merge, wait = 4.0, 1.8  # y_ref = 4 m: in the target lane; leaning in, still in the ego's lane
+    forcing, waiting, gentle = plan(1.0, 9.0, merge), plan(5.0, 0.5, wait, 1), plan(4.0, 2.9, merge)  # braking m/s^2
+    pick = lambda *named: mpc.choose(s, [(n, *p) for n, p in named], wait)[0]
+    assert pick(("force", forcing), ("wait", waiting)) == "wait"
+    assert pick(("wait", waiting), ("gentle", gentle)) == "gentle"  # both under b_courtesy: the merge
+    assert pick(("force", forcing), ("worse", plan(0.5, 9.5, merge))) == "force"
+    assert pick(("merge", plan(9.0, 0.0, merge)), ("cheaper merge", plan(8.0, 0.0, merge))) == "cheaper merge"
+    # without a merge the first start's plan, not the cheapest: the shifted plan's J pulls towards the gap
+    assert pick(("shifted", plan(1.0, 0.0, 1.9, 3)), ("lean", plan(7.0, 0.0, wait, 1)), ("lane", plan(6.0, 0.0, 0.0, 2))) == "lean"
+    assert pick(("only", forcing)) == "only"
 
 
 def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(beside):
@@ -87,7 +100,7 @@ def test_the_breakdown_puts_each_world_in_one_class_against_the_ceiling():
 def test_with_a_predictor_that_expects_hard_braking_the_courteous_step_waits_where_the_others_force():
     """two_lane, world 2,000,000: the analytic predictor made to expect a car to brake hard for an ego cutting in ahead
     of it (slowdown 0.6: up to 15 m/s^2 at 5 m/s). The courteous step's courtesy rows and its waiting solve keep the
-    ego out of the gap; the paper's step with the same predictor, and the courteous step with cv, force it."""
+    ego out of the gap; the paper's step with the same predictor, and with cv, force it."""
     from data import outcomes
     from planner.setup import drive, planner_config, setup
 
@@ -100,4 +113,14 @@ def test_with_a_predictor_that_expects_hard_braking_the_courteous_step_waits_whe
     waits, scenario = braking("gradients=analytic", "predictor.slowdown=0.6", "mpc=courteous")
     assert waits <= 1.0  # nobody brakes for it: it never took the gap
     assert braking("gradients=analytic", "predictor.slowdown=0.6")[0] == pytest.approx(scenario.b_max)
-    assert braking("gradients=cv", "mpc=courteous")[0] == pytest.approx(scenario.b_max)
+    assert braking("gradients=cv")[0] == pytest.approx(scenario.b_max)
+
+
+def test_a_superellipse_that_does_not_cover_the_bodies_is_one_line_and_the_courteous_one_covers_them():
+    s = make("dense", ["gradients=cv", "mpc=courteous"])[2]
+    dx, dy = 1.8 + 1.8 * np.cos(0.25) + 0.8 * np.sin(0.25), 0.8 + 1.8 * np.sin(0.25) + 0.8 * np.cos(0.25)  # by hand
+    assert b_i(np.array([[[0.0, 0.0], [dx, dy]]]), s.R, s.stretch, s.shape)[0, 0] <= 0  # the corner lies inside
+    assert b_i(np.array([[[0.0, 0.0], [0.0, 2.21]]]), s.R, s.stretch, s.shape)[0, 0] > 0  # leaning 1.8 m beside a car
+    with pytest.raises(UserError, match=r"^mpc.shape=6 with R=2.2 m and mpc.stretch=2.05 does not cover two 3.6 x 1.6 m "
+                                        r"bodies with the ego yawed up to 0.4 rad \(mpc.psi_box\)"):
+        make("dense", ["gradients=cv", "mpc=courteous", "mpc.psi_box=[-0.4,0.4]"])
