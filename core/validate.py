@@ -309,7 +309,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "mpc.osqp.adaptive_rho_interval": Int(0, optional=True),
     "zstep.settings.reuse_radius": Real(0, optional=True),
     "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
-    "mpc.check_relative": Bool(), "mpc.core": OneOf(("compiled", "reference")),
+    "mpc.check_relative": Bool(), "mpc.progress": NONNEG, "mpc.core": OneOf(("compiled", "reference")),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (
         "trust_radius", "min_radius", "max_radius", "tol", "slack_penalty", "slack_tol", "opt_tol", "viol_ineq_tol", "mu0",

@@ -51,8 +51,17 @@ def setup(cfg: DictConfig):
     source = build(cfg.gradients)
     check_window(cfg, source.predictor)
     s = settings(cfg, scenario)
+    check_starts(s)
     check_shape(s)
     return scenario, source, s
+
+
+def check_starts(s: mpc.Settings) -> None:
+    """One UserError unless every mpc.starts entry is [offset m, a m/s^2, v m/s or null] with finite numbers."""
+    for start in s.starts:
+        ok = len(start) == 3 and all(isinstance(x, (int, float)) and np.isfinite(x) for x in start[:2])
+        if not ok or not (start[2] is None or (isinstance(start[2], (int, float)) and start[2] >= 0)):
+            raise UserError(f"mpc.starts: {list(start)} must be [offset m, a m/s^2, v m/s >= 0 or null]")
 
 
 def check_shape(s: mpc.Settings) -> None:

@@ -124,3 +124,9 @@ def test_a_superellipse_that_does_not_cover_the_bodies_is_one_line_and_the_court
     with pytest.raises(UserError, match=r"^mpc.shape=6 with R=2.2 m and mpc.stretch=2.05 does not cover two 3.6 x 1.6 m "
                                         r"bodies with the ego yawed up to 0.4 rad \(mpc.psi_box\)"):
         make("dense", ["gradients=cv", "mpc=courteous", "mpc.psi_box=[-0.4,0.4]"])
+
+
+@pytest.mark.parametrize("starts", ["[[1.6,0.0]]", "[[1.8,-1.0,-1.0]]"])
+def test_a_start_that_is_not_offset_acceleration_speed_is_one_line(starts):
+    with pytest.raises(UserError, match=r"^mpc.starts: \[.*\] must be \[offset m, a m/s\^2, v m/s >= 0 or null\]$"):
+        make("dense", ["gradients=cv", "mpc=courteous", f"mpc.starts={starts}"])
