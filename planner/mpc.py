@@ -294,7 +294,7 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
                       braking=imposed(s, obs, values)), ""
 
 
-def choose(s: Settings, plans, y0=0.0):
+def choose(s: Settings, plans, y0: float):
     """The plan to apply among solved (name, StepResult, rank), the ego at lateral position y0 (m): with several, the
     least predicted braking above b_courtesy (m/s^2; without courtesy rows, b_safe is not the planner's to judge:
     none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than y0) by the lowest cost J;
@@ -306,7 +306,7 @@ def choose(s: Settings, plans, y0=0.0):
     excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy)
     merges = lambda r: (s.road.lane_of(r.plan.Z[-3]) == s.road.lane_of(s.y_ref)
                         or abs(s.y_ref - y0) - abs(s.y_ref - r.plan.Z[-3]) >= s.progress)
-    return min(plans, key=lambda p: (excess(p[1]), not merges(p[1]), 0 if merges(p[1]) else p[2], p[1].J))
+    return min(plans, key=lambda p: (excess(p[1]), (0, p[1].J) if merges(p[1]) else (1, p[2], p[1].J)))
 
 
 def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
