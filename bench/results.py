@@ -96,12 +96,14 @@ def ceiling_worlds(p) -> dict:
 
 
 def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, models: Path, runs: Path, extra, seed=0,
-                 surrogate=True):
+                 surrogate=True, iterates=None):
     """Add to `plan` the teacher, the student and (with `surrogate`) the surrogate trained on dataset_dir (of conf/dataset/
     option `dataset`) into `models` with training seed `seed`: jobs 'distill <model> <tag>' and 'surrogate <tag>', their
     run folders runs/distill-<model>-<name> and runs/surrogate-<name>; extra: each job's extra overrides by key
-    (teacher, student, surrogate)."""
+    (teacher, student, surrogate). With `iterates` (overrides of a `planner` batch), job 'iterates <tag>' first records
+    the states that planner linearises at into runs/iterates-<name>, and the surrogate trains and is tested on them."""
     from distill import train
+    from planner import cli as planner_cli
     from surrogate import cli as surrogate_cli
 
     common = [f"dataset={dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}"]
@@ -109,10 +111,17 @@ def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, mo
         plan.add(f"distill {model} {tag}", train.run, job_config("distill", [
             f"model={model}", *common, f"run_dir={runs / f'distill-{model}-{name}'}", "trainer.enable_progress_bar=false",
             *extra[model]]))
-    if surrogate:
-        plan.add(f"surrogate {tag}", surrogate_cli.run, job_config("surrogate", [
-            f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}", f"out_dir={runs / f'surrogate-{name}'}",
-            *extra["surrogate"]]))
+    if not surrogate:
+        return
+    recorded = []
+    if iterates is not None:
+        folder = runs / f"iterates-{name}"
+        plan.add(f"iterates {tag}", planner_cli.run, job_config("planner", [
+            *iterates, f"models_dir={models}", f"record_dir={folder / 'episodes'}", f"out_dir={folder}", "plots=false"]))
+        recorded = [f"data.iterates={folder / 'episodes'}"]
+    plan.add(f"surrogate {tag}", surrogate_cli.run, job_config("surrogate", [
+        f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}", f"out_dir={runs / f'surrogate-{name}'}",
+        *recorded, *extra["surrogate"]]))
 
 
 def build_plan(cfg, work: Path):
@@ -129,7 +138,7 @@ def build_plan(cfg, work: Path):
                                                                        "plot_episodes=0"]))
     models = lambda k: work / "models" / f"seed{k}"
     for k in p.training_seeds:
-        add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k)
+        add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k, iterates=p.iterates)
     interaction_cfgs = {}
     for i, k in enumerate(p.training_seeds):
         sources = [s for s in p.interaction_sources if i == 0 or s in TRAINED]  # untrained ones once
@@ -453,14 +462,16 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
     lines += markdown(["predictor", "ADE 1-step (mm)", "ADE rollout (mm)", "FDE rollout (mm)", "ADE rollout, yield episodes (mm)"],
                       [[m, *(mm(acc[m][k]) for k in ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_rollout_m_yield"))]
                        for m in MODELS])
-    grads = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err")
+    grads = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err", "ramp_grad_rel_err", "ramp_react_rel_err")
     rows = {name: gradient_row([out[f"surrogate seed {s}"] for s in seeds], suffix, grads) for name, suffix in GRADIENT_ROWS.items()}
     rows["student"]["jac_rel_err"] = over_trainings(d["student"], ("jac_rel_err",))["jac_rel_err"]  # its distill run's
     lines += ["## Gradients", "", "Against teacher autodiff on held-out planning states, beside the trivial baselines: "
               "constant velocity's Jacobian and the training set's mean Jacobian. The reaction part is the others' "
-              "d p_i / dZ, where predicting no reaction scores 1. Intervals: over trainings; with one training, over "
-              "the surrogate job's planning states.", ""]
-    lines += markdown(["source", "local Jacobian rel. error", "d b_i/dZ cosine", "d b_i/dZ rel. error", "reaction rel. error"],
+              "d p_i / dZ, where predicting no reaction scores 1. `along ramps`: the same derivatives along plan changes "
+              "the ego can drive (a change of speed from one step on), the ones the planner's steps take. Intervals: "
+              "over trainings; with one training, over the surrogate job's planning states.", ""]
+    lines += markdown(["source", "local Jacobian rel. error", "d b_i/dZ cosine", "d b_i/dZ rel. error", "reaction rel. error",
+                       "d b_i/dZ rel. error along ramps", "reaction rel. error along ramps"],
                       [[name, *(fmt(r[k][0], ".3f", *r[k][1:]) for k in grads)] for name, r in rows.items()])
     inter_runs = {}
     for k in seeds:

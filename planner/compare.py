@@ -29,8 +29,11 @@ from surrogate.evaluate import metric
 
 log = logging.getLogger(__name__)
 GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err", ""), "grad_rel_err_lo": ("grad_rel_err", "_lo"),
-            "grad_rel_err_hi": ("grad_rel_err", "_hi"), "react_rel_err": ("react_rel_err", "")}  # column: (score, end) of
-# d b_i/dZ against teacher autodiff on the surrogate job's held-out planning states (surrogate.evaluate.metric)
+            "grad_rel_err_hi": ("grad_rel_err", "_hi"), "react_rel_err": ("react_rel_err", ""),
+            "ramp_grad_rel_err": ("ramp_grad_rel_err", ""), "ramp_grad_rel_err_lo": ("ramp_grad_rel_err", "_lo"),
+            "ramp_grad_rel_err_hi": ("ramp_grad_rel_err", "_hi"), "ramp_react_rel_err": ("ramp_react_rel_err", "")}
+# column: (score, end) of d b_i/dZ against teacher autodiff on the surrogate job's held-out planning states, along single
+# coordinates of Z and along ramps, plans the ego can drive (surrogate.evaluate)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
 BASELINES = {"cv": "_cv", "mean Jacobian": "_mean"}  # the trivial gradient sources every row is shown against
 MEANS = ("t_merge", "C_max", "admm_iters_mean", "fallbacks", "b_imposed_max")  # episode-weighted over the pooled runs
@@ -76,7 +79,8 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     if suffix is not None:
         row.update(gradient_error(scored, suffix))
     for s in BASELINES.values():
-        row.update({metric(k, s): v for k, v in gradient_error(scored, s).items() if k in ("grad_rel_err", "react_rel_err")})
+        row.update({metric(k, s): v for k, v in gradient_error(scored, s).items()
+                    if k in ("grad_rel_err", "react_rel_err", "ramp_grad_rel_err", "ramp_react_rel_err")})
     row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
 
@@ -143,7 +147,8 @@ def label(r: pd.Series, varying) -> str:
 
 def plot(df: pd.DataFrame, path: Path, group_by=()):
     """Three panels against median MPC step time, one marker per row with a legend: gradient error (relative error of
-    d b_i/dZ against teacher autodiff, 95% interval, the trivial baselines as lines), courteous-merge rate with its 95%
+    d b_i/dZ against teacher autodiff along ramps, 95% interval, the trivial baselines as lines; along single
+    coordinates for runs scored before the ramps), courteous-merge rate with its 95%
     Wilson interval, interaction fidelity of the gradient (react_corr_jac)."""
     import matplotlib
 
@@ -155,24 +160,26 @@ def plot(df: pd.DataFrame, path: Path, group_by=()):
     cmap = plt.get_cmap("tab10" if len(df) <= 10 else "tab20")
     markers = "osD^v<>Ph*X"
     handles = []
+    g = "ramp_grad_rel_err" if df["ramp_grad_rel_err"].notna().any() else "grad_rel_err"
     for i, (_, r) in enumerate(df.iterrows()):
         style = dict(color=cmap(i % cmap.N), marker=markers[i % len(markers)], ms=7, ls="none")
         x = r["step_ms_median"]
-        err = r["grad_rel_err"]
+        err = r[g]
         if np.isfinite(err):
-            bar = [[err - r["grad_rel_err_lo"]], [r["grad_rel_err_hi"] - err]]
-            axes[0].errorbar(x, err, yerr=bar if np.isfinite(r["grad_rel_err_lo"]) else None, capsize=4, **style)
+            bar = [[err - r[f"{g}_lo"]], [r[f"{g}_hi"] - err]]
+            axes[0].errorbar(x, err, yerr=bar if np.isfinite(r[f"{g}_lo"]) else None, capsize=4, **style)
         yerr = [[r["courteous_rate"] - r["courteous_lo"]], [r["courteous_hi"] - r["courteous_rate"]]]
         h = axes[1].errorbar(x, r["courteous_rate"], yerr=yerr if np.isfinite(r["courteous_lo"]) else None, capsize=4, **style)
         if np.isfinite(r["react_corr_jac"]):
             axes[2].plot(x, r["react_corr_jac"], **style)
         handles.append((h, f"{label(r, varying)}: {r['n_episodes']} ep, {r['n_runs']} run{'s' * (r['n_runs'] > 1)}"))
     for (name, s), ls in zip(BASELINES.items(), ("--", ":")):
-        level = df[f"grad_rel_err{s}"].dropna()
+        level = df[f"{g}{s}"].dropna()
         if len(level):
             axes[0].axhline(level.iloc[0], color="k", ls=ls, lw=1, label=f"{name} (baseline)")
             axes[0].legend(fontsize=8)
-    axes[0].set(xscale="log", ylabel="rel. error of d b_i/dZ vs teacher autodiff", title="gradient error vs speed")
+    axes[0].set(xscale="log", ylabel="rel. error of d b_i/dZ vs teacher autodiff" + (" (along ramps)" if g != "grad_rel_err" else ""),
+                title="gradient error vs speed")
     axes[1].set(xscale="log", ylabel="courteous-merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
     axes[2].set(xscale="log", ylabel="react_corr_jac (first-order response vs true)", ylim=(-1.05, 1.05),
                 title="interaction fidelity vs speed")
@@ -200,7 +207,8 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
 
 SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi", "merged_rate", "collision_rate", "t_merge",
          "b_imposed_max", "d_min_m", "fallbacks", "step_ms_median", "ade_rollout_m", "grad_rel_err", "grad_rel_err_cv",
-         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
+         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "ramp_grad_rel_err", "ramp_grad_rel_err_cv",
+         "ramp_grad_rel_err_mean", "ramp_react_rel_err", "ramp_react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
 
 
 @guarded

@@ -11,7 +11,7 @@ import numpy as np
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
-from core.jobs import CONF_DIR, UserError, options
+from core.jobs import CONF_DIR, UserError, atomic_file, options
 from core.rollout import rollout, rollout_jacobian
 from core.validate import TRAINED_PREDICTORS
 
@@ -152,6 +152,30 @@ class WorldOracle(CentralDifferences):
     def values(self, history, ego_futures):
         """Every car's xy (B, T_p, SLOTS, 2) under each ego plan (B, T_p, 2), from copies of the running world."""
         return self.predictor.futures(ego_futures)
+
+
+class Recording:
+    """A gradient source that keeps every (history, ego plan) it is linearised at: the planner's own iterates, as
+    training and test states for the surrogate (`planner record_dir=...`). Everything else is the wrapped source's; the
+    compiled planner core does not know this class, so the step runs on the Python path that calls `jacobian`."""
+
+    def __init__(self, source):
+        self.source, self.histories, self.plans = source, [], []
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+    def jacobian(self, history, ego_future):
+        """The wrapped source's values and Jacobian (m, m/m), with the state they are taken at kept."""
+        self.histories.append(np.array(history, dtype=float))
+        self.plans.append(np.array(ego_future, dtype=float))
+        return self.source.jacobian(history, ego_future)
+
+    def save(self, path: Path):
+        """Write the kept states to `path` (.npz: history (n, T_obs, SLOTS, 2), ego_future (n, T_p, 2), m), atomically."""
+        def write(tmp):
+            np.savez(tmp, history=np.array(self.histories), ego_future=np.array(self.plans))
+        atomic_file(path, write)
 
 
 def option(group: str, name: str) -> DictConfig:

@@ -10,7 +10,7 @@ from core.jobs import UserError, build, job_config
 from core.rollout import b_i
 from distill import certificate
 from planner import closed_loop, mpc
-from planner.gradients import WorldModel
+from planner.gradients import Recording, WorldModel
 
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
@@ -101,8 +101,14 @@ def run_params(scenario, source, cfg: DictConfig) -> dict:
 
 
 def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=None) -> closed_loop.Episode:
-    """One closed-loop episode with `method` (a key of cfg.method), seeded by `seed` (default cfg.seed)."""
+    """One closed-loop episode with `method` (a key of cfg.method), seeded by `seed` (default cfg.seed); with
+    cfg.record_dir, every state the planner linearises at goes to <record_dir>/<scenario>_<method>_<seed>.npz."""
     step = build(cfg.method[method])
-    world = scenario.make_world(cfg.seed if seed is None else seed)
-    return closed_loop.drive(world, lambda obs, warm: step(s, obs, source, warm), source, scenario.x_ref,
-                             scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world, cfg.n_slots)
+    seed = cfg.seed if seed is None else seed
+    if cfg.record_dir:
+        source = Recording(source)
+    ep = closed_loop.drive(scenario.make_world(seed), lambda obs, warm: step(s, obs, source, warm), source,
+                           scenario.x_ref, scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world, cfg.n_slots)
+    if cfg.record_dir:
+        source.save(Path(cfg.record_dir) / f"{scenario.name}_{method}_{seed}.npz")
+    return ep

@@ -22,7 +22,7 @@ from distill.train import quiet_lightning_tips
 from surrogate import evaluate, jacobians, models
 from surrogate.export import export
 from surrogate.network import Fused
-from surrogate.training import JacobianData, rel_err
+from surrogate.training import JacobianData, reaction, rel_err
 
 log = logging.getLogger(__name__)
 
@@ -37,14 +37,53 @@ def instantiate_user(node, **kwargs):
         raise
 
 
-def windows_and_jacobians(cfg, source, sampler, X, n_dataset, n_states, rng):
-    """(windows, J) of one split's windows X: up to n_dataset of them plus every rollout window of n_states planning states."""
+def windows_and_jacobians(cfg, source, sampler, X, n_dataset, n_states, rng, extra=None):
+    """(windows, J) of one split's windows X: up to n_dataset of them plus every rollout window of n_states planning
+    states and of the `extra` ones (history, ego_future), which come last, state-major."""
     own = X[rng.permutation(len(X))[:n_dataset]]
     history, ego_future = sampler.sample(X[rng.integers(0, len(X), n_states)], rng)
+    if extra is not None:
+        history, ego_future = np.concatenate([history, extra[0]]), np.concatenate([ego_future, extra[1]])
     W = np.concatenate([own, jacobians.planner_windows(source.phi, history, ego_future)])
     if cfg.jacobian == "autodiff":
         return W, jacobians.autodiff(source, W)
     return W, jacobians.central(source.phi, W, cfg.central_h)
+
+
+def load_iterates(folder, T_obs, M, T_p) -> list:
+    """[(history (n, T_obs, M, 2), ego_future (n, T_p, 2))] m, one per episode file of `folder` in name order: the
+    states a planner linearised at (`planner record_dir=...`); a UserError naming the folder or file otherwise."""
+    files = sorted(Path(folder).glob("*.npz"))
+    if not files:
+        raise UserError(f"data.iterates={folder}: no .npz episode files there (record them with `planner record_dir=...`)")
+    out = []
+    for f in files:
+        try:
+            with np.load(f) as d:
+                history, ego_future = d["history"].astype(np.float64), d["ego_future"].astype(np.float64)
+        except (OSError, ValueError, KeyError) as e:
+            raise UserError(f"{f}: not a recorded planner episode ({type(e).__name__}: {e})") from None
+        if history.shape[1:] != (T_obs, M, 2) or ego_future.shape[1:] != (T_p, 2) or len(history) != len(ego_future):
+            raise UserError(f"{f}: history {history.shape} and ego_future {ego_future.shape}, expected (n, {T_obs}, {M}, 2) "
+                            f"and (n, {T_p}, 2): recorded with another T_obs, n_slots or T_p")
+        if not (np.isfinite(history).all() and np.isfinite(ego_future).all()):
+            raise UserError(f"{f}: non-finite positions")
+        out.append((history, ego_future))
+    return out
+
+
+def pick(episodes, n, rng):
+    """(history, ego_future) of n states drawn without replacement from the pooled episodes (all of them if fewer)."""
+    history, ego_future = (np.concatenate(a) for a in zip(*episodes))
+    chosen = rng.permutation(len(history))[:n]
+    return history[chosen], ego_future[chosen]
+
+
+def planning_states(split, n_states, T_p):
+    """(windows (n, T_p, T_obs, SLOTS, 2), reaction (n, T_p, N, 2, T_p, 2)) of the n_states planning states at the end
+    of a split from windows_and_jacobians, for the composed reaction loss."""
+    W, J = (a[len(a) - n_states * T_p:].reshape((n_states, T_p) + a.shape[1:]) for a in split)
+    return W, reaction(J)
 
 
 def per_state(n, a):
@@ -91,7 +130,17 @@ def run(cfg: DictConfig) -> dict:
     sampler = instantiate(cfg.states)
     with mlflow_run("surrogate", cfg, run_name=f"surrogate-{cfg.source}", source=cfg.source) as run, \
             staged(cfg.models_dir) as stage:
-        train = windows_and_jacobians(cfg, source, sampler, X["train"], cfg.data.dataset_windows, cfg.data.plan_states, rng)
+        iterates = test_iterates = None
+        if cfg.data.iterates:
+            episodes = load_iterates(cfg.data.iterates, *X["train"].shape[1:3], cfg.paper.T_p)
+            if len(episodes) <= cfg.data.test_iterate_episodes:
+                raise UserError(f"data.iterates={cfg.data.iterates}: {len(episodes)} episode files, and "
+                                f"data.test_iterate_episodes={cfg.data.test_iterate_episodes} of them are held out: "
+                                "record more episodes")
+            iterates = pick(episodes[:-cfg.data.test_iterate_episodes], cfg.data.iterate_states, rng)
+            test_iterates = pick(episodes[-cfg.data.test_iterate_episodes:], cfg.data.test_plan_states, rng)
+        train = windows_and_jacobians(cfg, source, sampler, X["train"], cfg.data.dataset_windows, cfg.data.plan_states, rng,
+                                      iterates)
         val = windows_and_jacobians(cfg, source, sampler, X["val"], cfg.data.val_dataset_windows, cfg.data.val_plan_states, rng)
         T_obs, M = train[0].shape[1:3]
         net = instantiate(cfg.network, T_obs=T_obs, M=M)
@@ -99,7 +148,12 @@ def run(cfg: DictConfig) -> dict:
         logger = MLFlowLogger(experiment_name="surrogate", tracking_uri=mlflow.get_tracking_uri(), run_id=run.info.run_id)
         quiet_lightning_tips()
         trainer = instantiate(cfg.trainer, logger=logger, default_root_dir=cfg.out_dir)
-        trainer.fit(instantiate(cfg.module, net=net), datamodule=JacobianData(train, val, cfg.data.batch_size))
+        states = None
+        if cfg.module.composed:
+            states = (planning_states(train, cfg.data.plan_states + (0 if iterates is None else len(iterates[0])), cfg.paper.T_p),
+                      planning_states(val, cfg.data.val_plan_states, cfg.paper.T_p))
+        data = JacobianData(train, val, cfg.data.batch_size, states, cfg.data.state_batch)
+        trainer.fit(instantiate(cfg.module, net=net), datamodule=data)
 
         net = net.eval()
         module = Fused(net, copy.deepcopy(source.module)) if cfg.fused else net
@@ -108,6 +162,8 @@ def run(cfg: DictConfig) -> dict:
 
         test = X["test"]
         history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
+        if test_iterates is not None:  # the planner's own states in held-out episodes, where its gradients are used
+            history, ego_future = test_iterates
         W = jacobians.planner_windows(source.phi, history, ego_future)  # (n * T_p, T_obs, SLOTS, 2), state-major
         J, J_hat = jacobians.autodiff(source, W), surrogate.jac(W)
         J_mean = np.broadcast_to(net.J_mean.double().numpy().reshape(J.shape[1:]), J.shape)
@@ -136,12 +192,12 @@ def run(cfg: DictConfig) -> dict:
         mlflow.log_artifact(str(stage / "surrogate.onnx"))
     path = Path(cfg.models_dir) / "surrogate.onnx"
     log.info(f"surrogate of {cfg.source} ({cfg.jacobian}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
-             f"states d b_i/dZ cosine {metrics['grad_cosine']:.4f} (cv {metrics['grad_cosine_cv']:.4f}), "
-             f"rel err {metrics['grad_rel_err']:.4f} (mean-J {metrics['grad_rel_err_mean']:.4f}, cv {metrics['grad_rel_err_cv']:.4f}); "
-             f"others' reaction d p_i/dZ rel err {metrics['react_rel_err']:.3f} (mean-J {metrics['react_rel_err_mean']:.3f}); "
-             f"local J rel err {metrics['jac_rel_err']:.4f} (mean-J {metrics['jac_rel_err_mean']:.4f}); "
-             + (f"the student's d b_i/dZ rel err {metrics['grad_rel_err_student']:.4f}, reaction "
-                f"{metrics['react_rel_err_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +
+             f"states ({'the planner iterates' if cfg.data.iterates else 'sampled'}), relative errors of the surrogate (cv, mean-J):"
+             + "".join(f" {k} {metrics[k]:.3f} ({metrics[k + '_cv']:.3f}, {metrics[k + '_mean']:.3f});"
+                       for k in ("grad_rel_err", "react_rel_err", "ramp_grad_rel_err", "ramp_react_rel_err")) +
+             f" local J {metrics['jac_rel_err']:.4f} ({metrics['jac_rel_err_cv']:.4f}, {metrics['jac_rel_err_mean']:.4f}); "
+             + (f"the student's ramp_grad_rel_err {metrics['ramp_grad_rel_err_student']:.3f}, ramp_react_rel_err "
+                f"{metrics['ramp_react_rel_err_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +
              f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff")
     return metrics
 

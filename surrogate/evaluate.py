@@ -3,6 +3,11 @@
 Every Jacobian source is composed with the same rollout values (the source predictor's phi, computed once, batched,
 for all states), so the figures measure the gradient alone. The direct term of d b_i / d Z (the ego's own xy) is exact for every source; the `react_*`
 figures isolate what the predictor contributes, d p_i / d Z of the other cars.
+
+The `ramp_*` figures score the same derivatives along plan changes the ego can drive (`ramps`: a change of speed from
+one step on) instead of along single coordinates of Z. The difference matters: a predictor reads velocities and
+accelerations, so its derivative along a zig-zag of one step is large and changes within centimetres, while along a
+ramp the teacher's first-order response matches its own rollout's (docs/studies.md, "The gradient the planner needs").
 """
 import numpy as np
 
@@ -31,10 +36,36 @@ def replay(windows, nexts, Js):
     return phi_jac
 
 
+def ramps(T_p):
+    """(T_p, T_p) m: column k is the ego's change of position at steps 1..T_p when its speed changes by 1 m per step
+    from step k + 1 on."""
+    k = np.arange(T_p)
+    return np.maximum(0.0, k[:, None] - k[None, :] + 1.0)
+
+
+def along_ramps(G):
+    """A derivative d / d (ego xy) (..., T_p, 2) -> its value along each ramp (..., T_p, 2), per axis: G @ ramps(T_p).
+    numpy or torch alike."""
+    B = ramps(G.shape[-2])
+    if type(G).__module__.startswith("torch"):
+        import torch
+
+        return torch.einsum("...sa,sk->...ka", G, torch.as_tensor(B, dtype=G.dtype))
+    return np.einsum("...sa,sk->...ka", G, B)
+
+
 def dZ(phi_jac, history, ego_future, R):
     """d b_i / d Z (N*T_p, 4*T_p) m^2/m and d p_i / d ego xy (T_p, N, 2, T_p, 2) of one planning state."""
     values, grads = rollout_jacobian(phi_jac, history, ego_future)
     return b_i_jacobian(values, grads, R)[1], grads[:, 1:]
+
+
+def views(G, react):
+    """{key: derivative} scored for one state: d b_i / d Z and the reaction along single coordinates, and both along
+    ramps (d b_i / d Z's columns of the ego's xy; those of psi and v are zero)."""
+    T_p = react.shape[-2]
+    xy = G.reshape(len(G), T_p, 4)[..., :2]
+    return {"grad": G, "react": react, "ramp_grad": along_ramps(xy), "ramp_react": along_ramps(react)}
 
 
 def cosine(a, b):
@@ -48,21 +79,19 @@ def relative(a, b):
 
 
 def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R):
-    """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err, each (mean, lo, hi) over the
-    states (Student-t 95% interval).
+    """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err and their ramp_* twins (the
+    module's doc), each (mean, lo, hi) over the states (Student-t 95% interval).
 
     windows (n, T_p, T_obs, SLOTS, 2), nexts (n, T_p, SLOTS, 2) and the exact J (n, T_p, SLOTS*2, T_obs*SLOTS*2) are the source's on the
     windows its rollout visits; each of J_hats {name: (n, T_p, SLOTS*2, T_obs*SLOTS*2)} replaces J in the same rollout.
     """
-    scores = {name: {"grad_cosine": [], "grad_rel_err": [], "react_cosine": [], "react_rel_err": []} for name in J_hats}
+    scores = {name: {} for name in J_hats}
     for i, (history, ego_future) in enumerate(zip(histories, ego_futures)):
-        G, react = dZ(replay(windows[i], nexts[i], J[i]), history, ego_future, R)
+        truth = views(*dZ(replay(windows[i], nexts[i], J[i]), history, ego_future, R))
         for name, J_hat in J_hats.items():
-            G_hat, react_hat = dZ(replay(windows[i], nexts[i], J_hat[i]), history, ego_future, R)
-            s = scores[name]
-            s["grad_cosine"].append(cosine(G_hat, G))
-            s["grad_rel_err"].append(relative(G_hat, G))
-            s["react_cosine"].append(cosine(react_hat, react))
-            s["react_rel_err"].append(relative(react_hat, react))
+            hat = views(*dZ(replay(windows[i], nexts[i], J_hat[i]), history, ego_future, R))
+            for key, exact in truth.items():
+                scores[name].setdefault(f"{key}_cosine", []).append(cosine(hat[key], exact))
+                scores[name].setdefault(f"{key}_rel_err", []).append(relative(hat[key], exact))
     return {name: {k: stats.mean_ci(v) for k, v in s.items()} for name, s in scores.items()}
 

@@ -53,3 +53,14 @@ def test_unknown_gradient_name_is_one_clear_line(tmp_path):
     assert out.returncode == 2
     assert out.stderr.strip().splitlines() == ["error: unknown gradients 'bogus'; choose one of analytic, cv, fd, oracle, "
                                                "student, surrogate, teacher"]
+
+
+def test_record_dir_keeps_every_state_the_planner_linearises_at(tmp_path):
+    """`record_dir` writes one .npz per episode; replaying its states through the source gives back the linearisations
+    the step used: the first is taken at the observed history, the ego's planned xy continuing from it."""
+    plan(tmp_path, "gradients=cv", "plots=false", "max_steps=3", f"record_dir={tmp_path / 'it'}")
+    with np.load(tmp_path / "it" / "two_lane_admm_0.npz") as d:
+        history, ego_future = d["history"], d["ego_future"]
+    assert history.shape[1:] == (8, 5, 2) and ego_future.shape[1:] == (8, 2) and len(history) == len(ego_future) > 3
+    assert np.isfinite(history).all() and np.isfinite(ego_future).all()
+    assert np.linalg.norm(ego_future[0, 0] - history[0, -1, 0]) < 5.0  # one step (0.2 s) from the ego's last xy
