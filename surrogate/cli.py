@@ -161,9 +161,10 @@ def run(cfg: DictConfig) -> dict:
         surrogate = models.load(stage, T_obs, M - 1)
 
         test = X["test"]
-        history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
         if test_iterates is not None:  # the planner's own states in held-out episodes, where its gradients are used
             history, ego_future = test_iterates
+        else:
+            history, ego_future = sampler.sample(test[rng.integers(0, len(test), cfg.data.test_plan_states)], rng)
         W = jacobians.planner_windows(source.phi, history, ego_future)  # (n * T_p, T_obs, SLOTS, 2), state-major
         J, J_hat = jacobians.autodiff(source, W), surrogate.jac(W)
         J_mean = np.broadcast_to(net.J_mean.double().numpy().reshape(J.shape[1:]), J.shape)
