@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The whole pipeline at demo size (about 7 minutes on 2 cores once installed): data, teacher, certified student, the
+# The whole pipeline at demo size (about 7.5 minutes on 2 cores once installed): data, teacher, certified student, the
 # states the student's courteous planner linearises at (seeds from 5,000,000, kept from data and tests), the gradient
 # surrogate trained and tested on them, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, then the accuracy-vs-speed
 # table. The teacher trains 4 epochs here (2 min) instead of its default 12 (6.5 min: 40.6 against 42.6 mm rollout ADE;
