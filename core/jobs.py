@@ -149,6 +149,7 @@ def guarded(fn):
 
     def run(*args, **kwargs):
         main = threading.current_thread() is threading.main_thread()
+        _STOPPED.clear()  # a job starts unstopped, whatever stopped an earlier one in this process
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
         try:
             return fn(*args, **kwargs)

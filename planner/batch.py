@@ -152,6 +152,8 @@ def drive_all(cfg, method: str) -> list:
         if cfg.backend == "loky":  # results stream back one by one
             start_workers(cfg.n_jobs)
             for o in Parallel(n_jobs=cfg.n_jobs, return_as="generator")(tasks(seeds)):
+                if stop_signal() is not None:  # a library in this process caught the signal's Stopped and carried on
+                    raise Stopped(stop_signal())
                 out.append(o)
                 bar.update()
         else:  # Ray's joblib backend returns whole lists only: progress in chunks of a few episodes per worker
