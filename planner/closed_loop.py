@@ -74,7 +74,8 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
                         "psi": z[0, 2], "v": z[0, 3], "delta": u[0], "a": u[1], "lane": lane,
                         "in_target": int(lane == target_lane), "iterations": result.iters, "stop_reason": result.reason,
                         "cost": result.J, "F_norm": result.F_norm, "b_min": result.b_min, "slack": result.slack,
-                        "c_min": result.c_min, "braking_predicted": result.braking, "brake_max": braking, "fallback": result.fallback,
+                        "c_min": result.c_min, "braking_predicted": result.braking,
+                        "braking_follower": result.follower_braking, "brake_max": braking, "fallback": result.fallback,
                         "zstep_stop": result.zstop, "step_ms": step_ms,
                         "d_min_m": float(np.min(np.hypot(*(z[1:, :2] - z[0, :2]).T)))})
     ep.states = np.array(ep.states)

@@ -12,11 +12,23 @@ from scipy import linalg
 from core.jobs import UserError
 from core.rollout import accelerations, b_i, ego_xy
 from data import bicycle
+from data.drivers import IDMDriver
 from data.world import Road, steer_to
 from planner import admm, cost, dynamics, jit_admm, jit_rollout, jit_zstep, repair
 from planner.jit_zstep import CompiledSafety
 from planner.qp import SolverFailure
 from planner.safety import Safety
+
+
+@dataclass(frozen=True)
+class KeepAhead:
+    """When the nearest target-lane car behind the ego (within `near` m) is seen slowing for it, the lean starts aim at
+    that car's speed plus dv instead of their own v, so a driver who yields to the nudge is not overtaken by it (SI)."""
+
+    near: float  # m: how far behind the ego's centre that car's centre may be
+    dv: float  # m/s: kept above its speed
+    slowing: float  # m/s^2: it counts as slowing once it decelerates harder than this over the last observed steps
+    slower: float  # m/s: ... or drives this much slower than the target-lane car ahead of the ego
 
 
 @dataclass(frozen=True)
@@ -56,6 +68,8 @@ class Settings:
     brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
     starts: tuple  # extra ADMM solves [offset (m), a (m/s^2), v (m/s) or None: v_ref], aiming off the target lane (lane_starts); (): none
     progress: float  # m: a plan that ends this much nearer y_ref than the ego is now, or in the target lane, merges (choose)
+    follower: IDMDriver | None  # the nominal driver by whom choose judges the braking a plan imposes on the car it enters ahead of; None: no judgement (the paper)
+    keep_ahead: KeepAhead | None  # lean starts that follow a yielding driver through (lane_starts); None: their own v
 
     @property
     def R(self) -> float:
@@ -86,6 +100,7 @@ class StepResult(NamedTuple):
     zstop: str = ""  # why the last Z-update stopped, where its solver says (PyGranso's termination)
     c_min: float = np.nan  # the plan's smallest courtesy row a_i + b_c (m/s^2), where the Z-step has them
     braking: float = np.nan  # the hardest braking of another car (m/s^2) the predictor expects under the plan's rollout
+    follower_braking: float = np.nan  # the hardest the nominal follower (Settings.follower) would brake behind the plan (m/s^2)
 
 
 def simulate(z0, Delta, alpha, params):
@@ -141,14 +156,37 @@ def linearization(s: Settings, obs: Observation, start: admm.ADMMState):
     return dynamics.linearize(np.asarray(obs.z0, float), obs.u_prev[0], obs.u_prev[1], s.params, s.T_p, plan)
 
 
+def yielding_speed(s: Settings, history):
+    """The speed (m/s) of the nearest target-lane car behind the ego, within s.keep_ahead.near, when the observed history
+    (T_obs, SLOTS, 2) shows it slowing for the ego (see KeepAhead); None when there is none, or it is not slowing."""
+    k, dt = s.keep_ahead, s.params.dt
+    x, y = history[-1, :, 0], history[-1, :, 1]
+    v = (history[-1, :, 0] - history[-2, :, 0]) / dt
+    in_target = np.abs(y - s.y_ref) < s.road.lane_width / 2
+    in_target[0] = False
+    behind = np.flatnonzero(in_target & (x <= x[0]) & (x >= x[0] - k.near))
+    if len(behind) == 0 or len(history) < 3:
+        return None
+    b = behind[np.argmax(x[behind])]
+    decel = -(history[-1, b, 0] - 2 * history[-2, b, 0] + history[-3, b, 0]) / dt**2
+    ahead = np.flatnonzero(in_target & (x > x[0]))
+    lag = v[ahead[np.argmin(x[ahead])]] - v[b] if len(ahead) else 0.0
+    return float(v[b]) if decel > k.slowing or lag > k.slower else None
+
+
 def lane_starts(s: Settings, obs: Observation):
     """The extra ADMM solves (name, start, settings): for each [offset (m), a (m/s^2), v (m/s)] in s.starts, ADMM aims at
     y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.8: lean in, the
-    nudge) and at v_ref = v (None: the scenario's), starting from holding the lane at a (lane_plan). The target lane's
-    pull would draw every start into the same basin; these solves stay in theirs (choose)."""
+    nudge) and at v_ref = v (None: the scenario's), starting from holding the lane at a (lane_plan); with s.keep_ahead a
+    lean (offset > 0) beside a car seen yielding aims at that car's speed plus dv instead, to take the room it opens
+    (a crawl would let it pass). The target lane's pull would draw every start into the same basin; these solves stay
+    in theirs (choose)."""
     out, lane_y = [], s.road.centre(s.road.lane_of(obs.z0[1]))
+    v_yield = yielding_speed(s, obs.history) if s.keep_ahead is not None else None
     for offset, a, v in s.starts:
         y, v = lane_y + float(offset) * np.sign(s.y_ref - lane_y), s.v_ref if v is None else float(v)
+        if offset > 0 and v_yield is not None:
+            v = float(np.clip(v_yield + s.keep_ahead.dv, *s.v_box))
         Delta, alpha = lane_plan(s, obs.z0, a)
         start = admm.ADMMState(Delta, alpha, simulate(obs.z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
         out.append((f"y {y:+.1f} m, v {v:.1f} m/s", start, replace(s, y_ref=y, v_ref=v)))
@@ -208,6 +246,29 @@ def imposed(s: Settings, obs: Observation, values) -> float:
     """The hardest braking (m/s^2, >= 0) the predictor expects of another car, from its values (T_p, SLOTS, 2) over a
     plan's rollout."""
     return float(max(0.0, -accelerations(values, obs.history, s.params.dt).min(initial=0.0)))
+
+
+def follower_braking(s: Settings, obs: Observation, Z, values) -> float:
+    """The hardest braking (m/s^2, >= 0) that s.follower, an IDM driver, would need behind the ego's plan Z (4T_p,) in a
+    lane the ego enters (not its current one), for each other car that the predictor's values (T_p, SLOTS, 2) put
+    behind the ego in that lane; 0 without s.follower. Constant velocity predicts no braking; this judges the gap a plan
+    leaves, whoever predicts the positions."""
+    if s.follower is None:
+        return 0.0
+    ego = Z.reshape(-1, 4)
+    x = np.concatenate([obs.history[-1:, 1:], values[:, 1:]])  # (T_p + 1, N, 2), the last observed step first
+    v = np.hypot(*np.diff(x, axis=0).transpose(2, 0, 1)) / s.params.dt  # (T_p, N)
+    lane = s.road.lane_of(ego[:, 1])[:, None]
+    behind = ((s.road.lane_of(values[:, 1:, 1]) == lane) & (lane != s.road.lane_of(obs.z0[1]))
+              & (values[:, 1:, 0] < ego[:, :1]))
+    if not behind.any():
+        return 0.0
+    k, i = np.nonzero(behind)
+    gap = np.maximum(ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, 0.1)
+    f = s.follower
+    a = (f.a_max * (1.0 - (np.maximum(v[k, i], 0.0) / f.v0) ** f.delta)
+         - f.a_max * (f.desired_gap(v[k, i], v[k, i] - ego[k, 3]) / gap) ** 2)
+    return float(max(0.0, -a.min()))
 
 
 def lane_plan(s: Settings, z0, a):
@@ -291,19 +352,19 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
     return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=prob.J(st), iters=solve.iters, reason=reason,
                       F_norm=solve.F_norm, b_min=b_min, slack=solve.zinfo.get("slack", 0.0), fallback="",
                       zstop=solve.zinfo.get("termination_reason", ""), c_min=solve.zinfo.get("c_min", np.nan),
-                      braking=imposed(s, obs, values)), ""
+                      braking=imposed(s, obs, values), follower_braking=follower_braking(s, obs, st.Z, values)), ""
 
 
 def choose(s: Settings, plans, y0: float):
     """The plan to apply among solved (name, StepResult, rank), the ego at lateral position y0 (m): with several, the
-    least predicted braking above b_courtesy (m/s^2; without courtesy rows, b_safe is not the planner's to judge:
-    none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than y0) by the lowest cost J;
+    least braking above b_courtesy (m/s^2), predicted or the nominal follower's (without courtesy rows, b_safe is not
+    the planner's to judge: none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than y0) by the lowest cost J;
     without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an ego that cannot merge yet
     waits as the first start says instead of pressing on beside the gap (the scenario's J, which pulls towards y_ref,
     would choose that), then J."""
     if len(plans) == 1:
         return plans[0]
-    excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy)
+    excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy, r.follower_braking - s.b_courtesy)
     merges = lambda r: (s.road.lane_of(r.plan.Z[-3]) == s.road.lane_of(s.y_ref)
                         or abs(s.y_ref - y0) - abs(s.y_ref - r.plan.Z[-3]) >= s.progress)
     return min(plans, key=lambda p: (excess(p[1]), (0, p[1].J) if merges(p[1]) else (1, p[2], p[1].J)))

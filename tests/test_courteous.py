@@ -1,5 +1,7 @@
 """mpc=courteous: the repair of plans that miss the check, the choice among several solves, and its config; the courtesy
 rows' values and derivatives are checked in test_compiled_core."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -57,6 +59,60 @@ def test_the_choice_puts_predicted_excess_braking_first_then_a_merge_then_the_st
     # without a merge the first start's plan, not the cheapest: the shifted plan's J pulls towards the gap
     assert pick(("shifted", plan(1.0, 0.0, 1.9, 3)), ("lean", plan(7.0, 0.0, wait, 1)), ("lane", plan(6.0, 0.0, 0.0, 2))) == "lean"
     assert pick(("only", forcing)) == "only"
+    cv_forcing = plan(1.0, 0.0, merge)[0]._replace(follower_braking=6.0), 0  # cv predicts no braking; the follower would
+    assert pick(("force", cv_forcing), ("wait", waiting)) == "wait"
+
+
+def _idm(v, gap, v_lead, v0=7.0, T=0.4, s0=1.2, a_max=2.0, b=2.0, delta=4.0):
+    """IDM's acceleration (m/s^2) written out from Treiber et al. (2000), independently of data.drivers."""
+    s_star = s0 + max(0.0, v * T + v * (v - v_lead) / (2.0 * (a_max * b) ** 0.5))
+    return a_max * (1.0 - (v / v0) ** delta - (s_star / gap) ** 2)
+
+
+def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_and_only_then(beside):
+    s, dt = beside[0], beside[0].params.dt
+    z0 = np.array([0.0, 1.8, 0.0, 5.0])
+    T = np.arange(1, s.T_p + 1)
+    y = np.minimum(1.8 + 0.5 * T, 4.0)  # the plan enters the target lane (centre 4 m) at step 1 (y 2.3 m: lane 1)
+    Z = np.stack([5.0 * dt * T, y, 0 * T, np.full(s.T_p, 5.0)], 1).ravel()
+    behind, ahead = -6.0, 20.0  # x of a car behind the ego at 6 m/s and one ahead at 4 m/s at t = 0 (m)
+    track = lambda x0, v, k: [x0 + v * dt * k, 4.0]
+    values = np.array([[Z[4 * (k - 1):4 * (k - 1) + 2], track(behind, 6.0, k), track(ahead, 4.0, k), [0.0, 0.0], [0.0, 0.0]]
+                       for k in T])
+    history = np.array([[z0[:2], track(behind, 6.0, k), track(ahead, 4.0, k), [0.0, 0.0], [0.0, 0.0]] for k in range(-7, 1)])
+    obs = mpc.Observation(z0, np.zeros(2), history)
+    want = max(0.0, max(-_idm(6.0, 5.0 * dt * k - (behind + 6.0 * dt * k) - 3.6, 5.0) for k in T))
+    assert want > 4.0  # closing in at 1 m/s from 2.4 m: a forced merge by IDM, which cv predicts as no braking at all
+    assert mpc.follower_braking(s, obs, Z, values) == pytest.approx(want, rel=1e-9)
+    in_lane = Z.reshape(-1, 4).copy()
+    in_lane[:, 1] = 1.8  # the same plan leaning, not entering: nobody follows it
+    assert mpc.follower_braking(s, obs, in_lane.ravel(), values) == 0.0
+    assert mpc.follower_braking(replace(s, follower=None), obs, Z, values) == 0.0
+    assert make("two_lane", ["gradients=cv"])[2].follower is None  # the paper's step judges no gap
+
+
+def _stream(s, back_x, back_v, back_a, front_v=5.0):
+    """An observation with the ego leaning in at 1 m/s, a target-lane car ahead at front_v and one behind at back_x (m)
+    now, driving at back_v (m/s) and accelerating at back_a (m/s^2) over the observed steps."""
+    dt, k = s.params.dt, np.arange(-7, 1) * s.params.dt
+    ego = np.stack([1.0 * k, np.full(8, 1.8)], 1)
+    front = np.stack([8.0 + front_v * k, np.full(8, 4.0)], 1)
+    back = np.stack([back_x + back_v * k + 0.5 * back_a * k**2, np.full(8, 4.0)], 1)
+    far = np.stack([np.full(8, -60.0), np.full(8, 4.0)], 1)
+    return mpc.Observation(np.array([0.0, 1.8, 0.0, 1.0]), np.zeros(2), np.stack([ego, front, back, far, far], 1)), dt
+
+
+@pytest.mark.parametrize("back_x, back_v, back_a, v_lean", [
+    (-3.0, 3.0, -2.0, 4.2),  # braking for the ego: the lean aims at its speed over the last step (3.2 m/s) + 1 m/s
+    (-3.0, 4.0, 0.0, 5.0),  # 1 m/s slower than the car ahead: yielding too
+    (-3.0, 5.0, 0.0, 1.0),  # with the stream: let it pass at a crawl
+    (-8.0, 3.0, -2.0, 1.0),  # braking, but beyond keep_ahead.near (6 m)
+])
+def test_a_lean_beside_a_car_seen_yielding_keeps_ahead_of_it_and_otherwise_crawls(beside, back_x, back_v, back_a, v_lean):
+    s = beside[0]
+    obs, _ = _stream(s, back_x, back_v, back_a)
+    starts = {name.split(",")[0]: aim.v_ref for name, _, aim in mpc.lane_starts(s, obs)}
+    assert starts == {"y +1.8 m": pytest.approx(v_lean, abs=1e-9), "y +0.0 m": s.v_ref}
 
 
 def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(beside):
