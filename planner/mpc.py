@@ -179,7 +179,7 @@ def lane_starts(s: Settings, obs: Observation):
     y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.8: lean in, the
     nudge) and at v_ref = v (None: the scenario's), starting from holding the lane at a (lane_plan); with s.keep_ahead a
     lean (offset > 0) beside a car seen yielding aims at that car's speed plus dv instead, to take the room it opens
-    (a crawl would let it pass). The target lane's pull would draw every start into the same basin; these solves stay
+    (stopped, the ego would let it pass). The target lane's pull would draw every start into the same basin; these solves stay
     in theirs (choose)."""
     out, lane_y = [], s.road.centre(s.road.lane_of(obs.z0[1]))
     v_yield = yielding_speed(s, obs.history) if s.keep_ahead is not None else None
