@@ -68,7 +68,7 @@ class Settings:
     brake: float  # deceleration of the braking-in-lane fallback (m/s^2)
     starts: tuple  # extra ADMM solves [offset (m), a (m/s^2), v (m/s) or None: v_ref], aiming off the target lane (lane_starts); (): none
     progress: float  # m: a plan that ends this much nearer y_ref than the ego is now, or in the target lane, merges (choose)
-    follower: IDMDriver | None  # the nominal driver by whom choose judges the braking a plan imposes on the car it enters ahead of; None: no judgement (the paper)
+    follower: IDMDriver | None  # the nominal driver by whom choose judges the braking a plan imposes; None: none (the paper)
     keep_ahead: KeepAhead | None  # lean starts that follow a yielding driver through (lane_starts); None: their own v
 
     @property
@@ -100,7 +100,7 @@ class StepResult(NamedTuple):
     zstop: str = ""  # why the last Z-update stopped, where its solver says (PyGranso's termination)
     c_min: float = np.nan  # the plan's smallest courtesy row a_i + b_c (m/s^2), where the Z-step has them
     braking: float = np.nan  # the hardest braking of another car (m/s^2) the predictor expects under the plan's rollout
-    follower_braking: float = np.nan  # the hardest the nominal follower (Settings.follower) would brake behind the plan (m/s^2)
+    follower_braking: float = np.nan  # the hardest braking of the nominal follower (Settings.follower) behind the plan (m/s^2)
 
 
 def simulate(z0, Delta, alpha, params):
@@ -159,13 +159,15 @@ def linearization(s: Settings, obs: Observation, start: admm.ADMMState):
 def yielding_speed(s: Settings, history):
     """The speed (m/s) of the nearest target-lane car behind the ego, within s.keep_ahead.near, when the observed history
     (T_obs, SLOTS, 2) shows it slowing for the ego (see KeepAhead); None when there is none, or it is not slowing."""
+    if len(history) < 3:  # no acceleration to read
+        return None
     k, dt = s.keep_ahead, s.params.dt
     x, y = history[-1, :, 0], history[-1, :, 1]
     v = (history[-1, :, 0] - history[-2, :, 0]) / dt
     in_target = np.abs(y - s.y_ref) < s.road.lane_width / 2
     in_target[0] = False
     behind = np.flatnonzero(in_target & (x <= x[0]) & (x >= x[0] - k.near))
-    if len(behind) == 0 or len(history) < 3:
+    if len(behind) == 0:
         return None
     b = behind[np.argmax(x[behind])]
     decel = -(history[-1, b, 0] - 2 * history[-2, b, 0] + history[-3, b, 0]) / dt**2
@@ -179,8 +181,8 @@ def lane_starts(s: Settings, obs: Observation):
     y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.8: lean in, the
     nudge) and at v_ref = v (None: the scenario's), starting from holding the lane at a (lane_plan); with s.keep_ahead a
     lean (offset > 0) beside a car seen yielding aims at that car's speed plus dv instead, to take the room it opens
-    (stopped, the ego would let it pass). The target lane's pull would draw every start into the same basin; these solves stay
-    in theirs (choose)."""
+    (stopped, the ego would let it pass). The target lane's pull would draw every start into the same basin; these
+    solves stay in theirs (choose)."""
     out, lane_y = [], s.road.centre(s.road.lane_of(obs.z0[1]))
     v_yield = yielding_speed(s, obs.history) if s.keep_ahead is not None else None
     for offset, a, v in s.starts:
@@ -261,14 +263,9 @@ def follower_braking(s: Settings, obs: Observation, Z, values) -> float:
     lane = s.road.lane_of(ego[:, 1])[:, None]
     behind = ((s.road.lane_of(values[:, 1:, 1]) == lane) & (lane != s.road.lane_of(obs.z0[1]))
               & (values[:, 1:, 0] < ego[:, :1]))
-    if not behind.any():
-        return 0.0
-    k, i = np.nonzero(behind)
-    gap = np.maximum(ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, 0.1)
-    f = s.follower
-    a = (f.a_max * (1.0 - (np.maximum(v[k, i], 0.0) / f.v0) ** f.delta)
-         - f.a_max * (f.desired_gap(v[k, i], v[k, i] - ego[k, 3]) / gap) ** 2)
-    return float(max(0.0, -a.min()))
+    a = [s.follower.acceleration(v[k, i], ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, ego[k, 3])
+         for k, i in zip(*np.nonzero(behind))]
+    return float(max(0.0, -min(a, default=0.0)))
 
 
 def lane_plan(s: Settings, z0, a):
@@ -358,8 +355,8 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
 def choose(s: Settings, plans, y0: float):
     """The plan to apply among solved (name, StepResult, rank), the ego at lateral position y0 (m): with several, the
     least braking above b_courtesy (m/s^2), predicted or the nominal follower's (without courtesy rows, b_safe is not
-    the planner's to judge: none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than y0) by the lowest cost J;
-    without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an ego that cannot merge yet
+    the planner's to judge: none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than
+    y0) by the lowest cost J; without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an ego that cannot merge yet
     waits as the first start says instead of pressing on beside the gap (the scenario's J, which pulls towards y_ref,
     would choose that), then J."""
     if len(plans) == 1:
