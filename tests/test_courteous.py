@@ -94,12 +94,12 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
 def _stream(s, back_x, back_v, back_a, front_v=5.0):
     """An observation with the ego leaning in at 1 m/s, a target-lane car ahead at front_v and one behind at back_x (m)
     now, driving at back_v (m/s) and accelerating at back_a (m/s^2) over the observed steps."""
-    dt, k = s.params.dt, np.arange(-7, 1) * s.params.dt
+    k = np.arange(-7, 1) * s.params.dt
     ego = np.stack([1.0 * k, np.full(8, 1.8)], 1)
     front = np.stack([8.0 + front_v * k, np.full(8, 4.0)], 1)
     back = np.stack([back_x + back_v * k + 0.5 * back_a * k**2, np.full(8, 4.0)], 1)
     far = np.stack([np.full(8, -60.0), np.full(8, 4.0)], 1)
-    return mpc.Observation(np.array([0.0, 1.8, 0.0, 1.0]), np.zeros(2), np.stack([ego, front, back, far, far], 1)), dt
+    return mpc.Observation(np.array([0.0, 1.8, 0.0, 1.0]), np.zeros(2), np.stack([ego, front, back, far, far], 1))
 
 
 @pytest.mark.parametrize("back_x, back_v, back_a, v_lean", [
@@ -110,7 +110,7 @@ def _stream(s, back_x, back_v, back_a, front_v=5.0):
 ])
 def test_a_lean_beside_a_car_seen_yielding_keeps_ahead_of_it_and_otherwise_keeps_its_speed(beside, back_x, back_v, back_a, v_lean):
     s = beside[0]
-    obs, _ = _stream(s, back_x, back_v, back_a)
+    obs = _stream(s, back_x, back_v, back_a)
     starts = {name.split(",")[0]: aim.v_ref for name, _, aim in mpc.lane_starts(s, obs)}
     own = s.starts[0][2]
     assert starts == {"y +1.8 m": pytest.approx(own if v_lean is None else v_lean, abs=1e-9), "y +0.0 m": s.v_ref}
