@@ -164,7 +164,7 @@ def yielding_speed(s: Settings, history):
     k, dt = s.keep_ahead, s.params.dt
     x, y = history[-1, :, 0], history[-1, :, 1]
     v = (history[-1, :, 0] - history[-2, :, 0]) / dt
-    in_target = np.abs(y - s.y_ref) < s.road.lane_width / 2
+    in_target = s.road.lane_of(y) == s.road.lane_of(s.y_ref)
     in_target[0] = False
     behind = np.flatnonzero(in_target & (x <= x[0]) & (x >= x[0] - k.near))
     if len(behind) == 0:
@@ -356,8 +356,8 @@ def choose(s: Settings, plans, y0: float):
     """The plan to apply among solved (name, StepResult, rank), the ego at lateral position y0 (m): with several, the
     least braking above b_courtesy (m/s^2), predicted or the nominal follower's (without courtesy rows, b_safe is not
     the planner's to judge: none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than
-    y0) by the lowest cost J; without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an ego that cannot merge yet
-    waits as the first start says instead of pressing on beside the gap (the scenario's J, which pulls towards y_ref,
+    y0) by the lowest cost J; without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an
+    ego that cannot merge yet waits as the first start says instead of pressing on beside the gap (the scenario's J, which pulls towards y_ref,
     would choose that), then J."""
     if len(plans) == 1:
         return plans[0]
