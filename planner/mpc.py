@@ -251,18 +251,18 @@ def imposed(s: Settings, obs: Observation, values) -> float:
 
 
 def follower_braking(s: Settings, obs: Observation, Z, values) -> float:
-    """The hardest braking (m/s^2, >= 0) that s.follower, an IDM driver, would need behind the ego's plan Z (4T_p,) in a
-    lane the ego enters (not its current one), for each other car that the predictor's values (T_p, SLOTS, 2) put
-    behind the ego in that lane; 0 without s.follower. Constant velocity predicts no braking; this judges the gap a plan
-    leaves, whoever predicts the positions."""
+    """The hardest braking (m/s^2, >= 0) that s.follower, an IDM driver, would need behind the ego's plan Z (4T_p,), for
+    each other car behind the ego in the plan's lane at a step: there by the predictor's values (T_p, SLOTS, 2), or
+    last seen there (the world has a car changing lanes follow the leaders of both); 0 without s.follower. Constant
+    velocity predicts no braking; this judges the gap a plan leaves, whoever predicts the positions."""
     if s.follower is None:
         return 0.0
     ego = Z.reshape(-1, 4)
-    x = np.concatenate([obs.history[-1:, 1:], values[:, 1:]])  # (T_p + 1, N, 2), the last observed step first
-    v = np.hypot(*np.diff(x, axis=0).transpose(2, 0, 1)) / s.params.dt  # (T_p, N)
+    x = np.concatenate([obs.history[-1:, 1:, 0], values[:, 1:, 0]])  # (T_p + 1, N), the last observed step first
+    v = np.diff(x, axis=0) / s.params.dt  # (T_p, N): along the road, as IDM follows
     lane = s.road.lane_of(ego[:, 1])[:, None]
-    behind = ((s.road.lane_of(values[:, 1:, 1]) == lane) & (lane != s.road.lane_of(obs.z0[1]))
-              & (values[:, 1:, 0] < ego[:, :1]))
+    there = (s.road.lane_of(values[:, 1:, 1]) == lane) | (s.road.lane_of(obs.history[-1, 1:, 1]) == lane)
+    behind = there & (values[:, 1:, 0] < ego[:, :1])
     a = [s.follower.acceleration(v[k, i], ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, ego[k, 3])
          for k, i in zip(*np.nonzero(behind))]
     return float(max(0.0, -min(a, default=0.0)))

@@ -77,9 +77,10 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
     Z = np.stack([5.0 * dt * T, y, 0 * T, np.full(s.T_p, 5.0)], 1).ravel()
     behind, ahead = -6.0, 20.0  # x of a car behind the ego at 6 m/s and one ahead at 4 m/s at t = 0 (m)
     track = lambda x0, v, k: [x0 + v * dt * k, 4.0]
-    values = np.array([[Z[4 * (k - 1):4 * (k - 1) + 2], track(behind, 6.0, k), track(ahead, 4.0, k), [0.0, 0.0], [0.0, 0.0]]
+    far = [-200.0, 0.0]  # parked far behind in the ego's lane: free road for IDM, no braking
+    values = np.array([[Z[4 * (k - 1):4 * (k - 1) + 2], track(behind, 6.0, k), track(ahead, 4.0, k), far, far]
                        for k in T])
-    history = np.array([[z0[:2], track(behind, 6.0, k), track(ahead, 4.0, k), [0.0, 0.0], [0.0, 0.0]] for k in range(-7, 1)])
+    history = np.array([[z0[:2], track(behind, 6.0, k), track(ahead, 4.0, k), far, far] for k in range(-7, 1)])
     obs = mpc.Observation(z0, np.zeros(2), history)
     want = max(0.0, max(-_idm(6.0, 5.0 * dt * k - (behind + 6.0 * dt * k) - 3.6, 5.0) for k in T))
     assert want > 4.0  # closing in at 1 m/s from 2.4 m: a forced merge by IDM, which cv predicts as no braking at all
@@ -88,6 +89,12 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
     in_lane[:, 1] = 1.8  # the same plan leaning, not entering: nobody follows it
     assert mpc.follower_braking(s, obs, in_lane.ravel(), values) == 0.0
     assert mpc.follower_braking(replace(s, follower=None), obs, Z, values) == 0.0
+    leaving = values.copy()
+    leaving[:, 1, 1] = 1.9  # predicted out of the lane already; last seen in the lane the plan enters, so it still counts
+    assert mpc.follower_braking(s, obs, Z, leaving) == pytest.approx(want, rel=1e-9)  # (the world has a car changing
+    # lanes follow the leaders of both)
+    inside = obs._replace(z0=np.array([0.0, 2.1, 0.0, 5.0]))  # halfway in: the lane it enters is its own now
+    assert mpc.follower_braking(s, inside, Z, values) == pytest.approx(want, rel=1e-9)
     assert make("two_lane", ["gradients=cv"])[2].follower is None  # the paper's step judges no gap
 
 
