@@ -3,7 +3,7 @@ random cotangents v on the other cars' outputs, the teacher's v^T J), Jacobian m
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, TensorDataset
+from torch.utils.data import DataLoader, TensorDataset, WeightedRandomSampler
 
 from core.jobs import UserError
 from core.rollout import rollout
@@ -33,9 +33,14 @@ class WindowData(L.LightningDataModule):
         """The split's training tensors: the recorded window and next positions."""
         return TensorDataset(torch.from_numpy(arrays["X"]), torch.from_numpy(arrays["Y"]))
 
+    def sampler(self):
+        """How training windows are drawn: None, uniformly shuffled (a subclass may weight them)."""
+        return None
+
     def train_dataloader(self):
         """Shuffled training batches; with branch groups a dict {windows, groups} Lightning cycles together."""
-        windows = DataLoader(self.splits["train"], batch_size=self.batch_size, shuffle=True)
+        sampler = self.sampler()
+        windows = DataLoader(self.splits["train"], batch_size=self.batch_size, shuffle=sampler is None, sampler=sampler)
         if not self.group_batch:
             return windows
         return {"windows": windows, "groups": DataLoader(self.groups, batch_size=self.group_batch, shuffle=True)}
@@ -49,13 +54,26 @@ class SequenceData(WindowData):
     """Train/val windows with the recorded futures of their run for a multi-step rollout loss: (window, ego future
     (H, 2), others' future (H, N, 2), mask (H,)); where the run ends early the ego continues at constant velocity
     and the mask is False. With contrast_groups > 0 each training batch also carries that many branch groups (the
-    same past under the episode's own and its counterfactual egos' futures, padded, with a member mask)."""
+    same past under the episode's own and its counterfactual egos' futures, padded, with a member mask). Windows whose
+    recorded future has another car braking harder than hard_braking are drawn hard_weight times as often."""
 
-    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups):
+    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight):
         """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only); contrast_groups:
-        branch groups per training batch (0: none)."""
+        branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight (-, 1: uniform)."""
         super().__init__(dataset_dir, batch_size)
         self.horizon, self.group_batch = horizon, contrast_groups
+        self.hard_braking, self.hard_weight = float(hard_braking), float(hard_weight)
+        if self.hard_weight <= 0 or not np.isfinite(self.hard_weight):
+            raise UserError(f"model.data.hard_weight={hard_weight} must be a positive number (1: uniform)")
+
+    def sampler(self):
+        """Uniform shuffling, or with hard_weight != 1 a WeightedRandomSampler that favours the hard-braking windows."""
+        if self.hard_weight == 1.0:
+            return None
+        X, _, others, mask = (a.numpy() for a in self.splits["train"].tensors)
+        dt = dataset.read_meta(self.dataset_dir)["dt"]
+        w = np.where(braking(X, others, mask, dt) > self.hard_braking, self.hard_weight, 1.0)
+        return WeightedRandomSampler(torch.from_numpy(w), num_samples=len(w))
 
     def tensors(self, arrays):
         """The split's windows with their futures, float32; on the training split also its branch groups."""
@@ -87,6 +105,14 @@ def groups(a, needed_by=None) -> np.ndarray:
         raise UserError(f"{needed_by} but the training split has no counterfactual branches (dataset.branches.points=0?)")
     width = max((len(m) for m in members.values()), default=0)
     return np.array([m + [-1] * (width - len(m)) for m in members.values()], dtype=np.int64).reshape(-1, width)
+
+
+def braking(X, others, mask, dt):
+    """The hardest braking (m/s^2, >= 0) of another car over each window's recorded future: second differences of x from
+    the last two observed steps on; X (n, T_obs, SLOTS, 2), others (n, H, N, 2), mask (n, H) as futures returns them."""
+    x = np.concatenate([X[:, -2:, 1:, 0], others[..., 0]], axis=1)  # (n, 2 + H, N)
+    a = np.diff(x, 2, axis=1) / dt**2  # (n, H, N)
+    return np.maximum(0.0, -np.where(mask[:, :, None], a, 0.0).min(axis=(1, 2)))
 
 
 def futures(a, horizon):

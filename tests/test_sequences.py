@@ -149,3 +149,26 @@ def test_student_branch_terms_fit_the_teachers_rollouts_and_their_response(tiny_
     contrast = sum(((1 - 1 / S[k]) ** 2 + (S[k] - 1) / S[k] ** 2) * 8 * 4 * 2 for k in range(5)) / (member.sum() * 8 * 8)
     rollout_err = 5 * 8 * 4 * 2 / (member.sum() * 8 * 8)
     assert step(pushed) == pytest.approx(base + 2.0 * rollout_err.item() + 3.0 * contrast.item(), rel=1e-4)
+
+
+def test_hard_braking_windows_are_found_from_the_recorded_future_and_drawn_more_often(tiny_dataset):
+    from distill.datamodule import SequenceData, braking
+
+    dt, k = 0.2, np.arange(-7, 1)
+    X = np.zeros((2, 8, 3, 2))
+    X[:, :, 1, 0], X[:, :, 2, 0] = 5.0 * k * dt, 20.0 + 5.0 * k * dt  # two cars at 5 m/s
+    t = np.arange(1, 4) * dt
+    others = np.stack([5.0 * t - 0.5 * 6.0 * t**2, 20.0 + 5.0 * t], -1)[..., None] * [1.0, 0.0]  # car 1 brakes at 6 m/s^2
+    others = np.stack([others, others]).astype(float)
+    mask = np.array([[True, True, True], [False, False, False]])  # the second window's future was never recorded
+    np.testing.assert_allclose(braking(X, others * mask[:, :, None, None], mask, dt), [6.0, 0.0], atol=1e-9)
+    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 10.0)
+    data.setup()
+    X, _, others, mask = (a.numpy() for a in data.splits["train"].tensors)
+    hard = braking(X, others, mask, dataset.read_meta(tiny_dataset)["dt"]) > 3.0
+    assert 0 < hard.sum() < len(hard)
+    weights = data.sampler().weights.numpy()
+    np.testing.assert_array_equal(weights, np.where(hard, 10.0, 1.0))
+    assert SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0).sampler() is None  # uniform: shuffled as before
+    with pytest.raises(UserError, match=r"^model.data.hard_weight=0.0 must be a positive number \(1: uniform\)$"):
+        SequenceData(tiny_dataset, 16, 8, 0, 3.0, 0.0)
