@@ -62,9 +62,7 @@ class SequenceData(WindowData):
         branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight (-, 1: uniform)."""
         super().__init__(dataset_dir, batch_size)
         self.horizon, self.group_batch = horizon, contrast_groups
-        self.hard_braking, self.hard_weight = float(hard_braking), float(hard_weight)
-        if self.hard_weight <= 0 or not np.isfinite(self.hard_weight):
-            raise UserError(f"model.data.hard_weight={hard_weight} must be a positive number (1: uniform)")
+        self.hard_braking, self.hard_weight = float(hard_braking), float(hard_weight)  # > 0: core.validate
 
     def sampler(self):
         """Uniform shuffling, or with hard_weight != 1 a WeightedRandomSampler that favours the hard-braking windows."""

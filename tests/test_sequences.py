@@ -170,5 +170,3 @@ def test_hard_braking_windows_are_found_from_the_recorded_future_and_drawn_more_
     weights = data.sampler().weights.numpy()
     np.testing.assert_array_equal(weights, np.where(hard, 10.0, 1.0))
     assert SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0).sampler() is None  # uniform: shuffled as before
-    with pytest.raises(UserError, match=r"^model.data.hard_weight=0.0 must be a positive number \(1: uniform\)$"):
-        SequenceData(tiny_dataset, 16, 8, 0, 3.0, 0.0)
