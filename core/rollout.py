@@ -114,10 +114,10 @@ def shape_weights(gap, R, stretch=1.0, p=2.0):
 
 
 def accelerations(values, history, dt):
-    """The others' accelerations along the road (N, T_p) in m/s^2 over a rollout: second differences of their x, the
-    last two observed steps first; values (T_p, SLOTS, 2), history (T_obs, SLOTS, 2), step dt (s)."""
-    x = np.concatenate([history[-2:, 1:, 0], values[:, 1:, 0]])  # (T_p + 2, N)
-    return ((x[2:] - 2.0 * x[1:-1] + x[:-2]) / dt**2).T
+    """The others' accelerations along the road (..., N, T_p) in m/s^2 over a rollout: second differences of their x,
+    the last two observed steps first; values (..., T_p, SLOTS, 2), history (..., T_obs, SLOTS, 2), step dt (s)."""
+    x = np.concatenate([history[..., -2:, 1:, 0], values[..., 1:, 0]], axis=-2)  # (..., T_p + 2, N)
+    return np.swapaxes((x[..., 2:, :] - 2.0 * x[..., 1:-1, :] + x[..., :-2, :]) / dt**2, -1, -2)
 
 
 def courtesy_jacobian(values, grads, history, dt, b_c):

@@ -6,7 +6,7 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset, WeightedRandomSampler
 
 from core.jobs import UserError
-from core.rollout import rollout
+from core.rollout import accelerations, rollout
 from data import dataset
 from distill.perturb import planner_like
 
@@ -68,9 +68,9 @@ class SequenceData(WindowData):
         """Uniform shuffling, or with hard_weight != 1 a WeightedRandomSampler that favours the hard-braking windows."""
         if self.hard_weight == 1.0:
             return None
-        X, _, others, mask = (a.numpy() for a in self.splits["train"].tensors)
         dt = dataset.read_meta(self.dataset_dir)["dt"]
-        w = np.where(braking(X, others, mask, dt) > self.hard_braking, self.hard_weight, 1.0)
+        hard = braking(*(a.numpy() for a in self.splits["train"].tensors), dt) > self.hard_braking
+        w = np.where(hard, self.hard_weight, 1.0)
         return WeightedRandomSampler(torch.from_numpy(w), num_samples=len(w))
 
     def tensors(self, arrays):
@@ -105,12 +105,12 @@ def groups(a, needed_by=None) -> np.ndarray:
     return np.array([m + [-1] * (width - len(m)) for m in members.values()], dtype=np.int64).reshape(-1, width)
 
 
-def braking(X, others, mask, dt):
-    """The hardest braking (m/s^2, >= 0) of another car over each window's recorded future: second differences of x from
-    the last two observed steps on; X (n, T_obs, SLOTS, 2), others (n, H, N, 2), mask (n, H) as futures returns them."""
-    x = np.concatenate([X[:, -2:, 1:, 0], others[..., 0]], axis=1)  # (n, 2 + H, N)
-    a = np.diff(x, 2, axis=1) / dt**2  # (n, H, N)
-    return np.maximum(0.0, -np.where(mask[:, :, None], a, 0.0).min(axis=(1, 2)))
+def braking(X, ego, others, mask, dt):
+    """The hardest braking (m/s^2, >= 0) of another car over each window's recorded future (core.rollout.accelerations,
+    the steps the run reached); X (n, T_obs, SLOTS, 2), ego (n, H, 2), others (n, H, N, 2), mask (n, H) as futures
+    returns them."""
+    a = accelerations(np.concatenate([ego[:, :, None], others], axis=2), X, dt)  # (n, N, H)
+    return np.maximum(0.0, -np.where(mask[:, None, :], a, 0.0).min(axis=(1, 2)))
 
 
 def futures(a, horizon):
