@@ -357,8 +357,8 @@ def choose(s: Settings, plans, y0: float):
     least braking above b_courtesy (m/s^2), predicted or the nominal follower's (without courtesy rows, b_safe is not
     the planner's to judge: none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than
     y0) by the lowest cost J; without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an
-    ego that cannot merge yet waits as the first start says instead of pressing on beside the gap (the scenario's J, which pulls towards y_ref,
-    would choose that), then J."""
+    ego that cannot merge yet waits as the first start says instead of pressing on beside the gap (the scenario's J,
+    which pulls towards y_ref, would choose that), then J."""
     if len(plans) == 1:
         return plans[0]
     excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy, r.follower_braking - s.b_courtesy)
