@@ -352,13 +352,21 @@ def solve_from(s: Settings, obs: Observation, source, start: admm.ADMMState, zst
                       braking=imposed(s, obs, values), follower_braking=follower_braking(s, obs, st.Z, values)), ""
 
 
+def shifted_rank(s: Settings) -> float:
+    """The shifted plan's rank among the starts' (1, 2, ... in the order of s.starts) in choose: after those that lean
+    in (offset > 0), before those that wait in lane. When the lean start's plan fails or imposes braking, the shifted
+    plan, leaning already, goes on asking the driver behind instead of dropping back to the lane centre (on tuning world
+    3,000,001 the ego swung between the two for 4 s beside a driver who would have yielded)."""
+    return sum(float(offset) > 0 for offset, _, _ in s.starts) + 0.5
+
+
 def choose(s: Settings, plans, y0: float):
     """The plan to apply among solved (name, StepResult, rank), the ego at lateral position y0 (m): with several, the
     least braking above b_courtesy (m/s^2), predicted or the nominal follower's (without courtesy rows, b_safe is not
     the planner's to judge: none), then a merge (a plan that ends in the target lane, or s.progress nearer y_ref than
-    y0) by the lowest cost J; without one, the lowest rank: the order of s.starts, the shifted plan's solve last, so an
-    ego that cannot merge yet waits as the first start says instead of pressing on beside the gap (the scenario's J,
-    which pulls towards y_ref, would choose that), then J."""
+    y0) by the lowest cost J; without one, the lowest rank (the order of s.starts, the shifted plan's solve at
+    shifted_rank), so an ego that cannot merge yet waits as the first start says instead of pressing on beside the gap
+    (the scenario's J, which pulls towards y_ref, would choose that), then J."""
     if len(plans) == 1:
         return plans[0]
     excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy, r.follower_braking - s.b_courtesy)
@@ -387,7 +395,7 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         if result is None:
             whys.append((name, why))
         elif aim is s:
-            plans.append((name, result, len(solves)))
+            plans.append((name, result, shifted_rank(s)))
         else:  # judged by the scenario's own cost
             plans.append((name, result._replace(J=J_of(s, obs.u_prev, result.plan.Delta, result.plan.alpha, result.plan.Z)), rank))
     if not plans:

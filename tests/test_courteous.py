@@ -57,7 +57,10 @@ def test_the_choice_puts_predicted_excess_braking_first_then_a_merge_then_the_st
     assert pick(("force", forcing), ("worse", plan(0.5, 9.5, merge))) == "force"
     assert pick(("merge", plan(9.0, 0.0, merge)), ("cheaper merge", plan(8.0, 0.0, merge))) == "cheaper merge"
     # without a merge the first start's plan, not the cheapest: the shifted plan's J pulls towards the gap
-    assert pick(("shifted", plan(1.0, 0.0, 1.9, 3)), ("lean", plan(7.0, 0.0, wait, 1)), ("lane", plan(6.0, 0.0, 0.0, 2))) == "lean"
+    shifted = plan(1.0, 0.0, 1.9, mpc.shifted_rank(s))
+    assert pick(("shifted", shifted), ("lean", plan(7.0, 0.0, wait, 1)), ("lane", plan(6.0, 0.0, 0.0, 2))) == "lean"
+    # the lean start's plan lost (failed, or imposes braking): the shifted plan leans on instead of dropping back
+    assert pick(("shifted", shifted), ("lane", plan(6.0, 0.0, 0.0, 2))) == "shifted"
     assert pick(("only", forcing)) == "only"
     cv_forcing = plan(1.0, 0.0, merge)[0]._replace(follower_braking=6.0), 0  # cv predicts no braking; the follower would
     assert pick(("force", cv_forcing), ("wait", waiting)) == "wait"
