@@ -15,6 +15,14 @@ Scores over all pairs, cars, steps and both coordinates:
               max_t |p_t - t_t| is within score.tolerance of that peak;
 and, with score.resamples > 0, 95% bootstrap intervals of react_corr and react_gain over the branch states (*_lo, *_hi).
 
+The braking each plan imposes, the hardest deceleration of any other car over T_p (m/s^2; the planner's courtesy rows
+and its choice judge plans by it), is scored per plan (two per pair) against the world's:
+  brake_corr  Pearson correlation of predicted and true hardest braking;
+  brake_auc   how well it sorts the plans that force a driver (true braking above score.forced) from the rest: the
+              probability that a forcing plan is predicted to impose more than a tolerated one (ties half; cv 0.5).
+The `follower` row is what the courteous planner judges a gap by whatever the predictor (planner.mpc.follower_braking):
+a nominal IDM driver behind the executed ego plan, on constant-velocity positions; its braking scores, no response.
+
     evaluate-interaction [sources=[cv,analytic,reference]] [states=34] [models_dir=models]
 """
 import csv
@@ -30,22 +38,25 @@ from omegaconf import DictConfig
 from bench.branches import KINDS, Pair, execute, make_pairs
 from core import validate
 from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, open_experiment, writable
+from core.rollout import accelerations
 from core.stats import bootstrap
 from planner.gradients import available
 
 log = logging.getLogger(__name__)
 
 REFERENCE = "reference"
+FOLLOWER = "follower"
 SOURCES = available(needs_world=False)  # conf/gradients/ but the oracle: it reads the planner's running world
 POS = validate.Real(0, lo_open=True)
 SCHEMA = {
-    "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE)), at_least=1), "models_dir": validate.Text(),
+    "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE, FOLLOWER)), at_least=1), "models_dir": validate.Text(),
     "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "n_slots": validate.Int(1), "T_p": validate.Int(1),
     "branch.min_steps": validate.Int(0), "branch.max_steps": validate.Int(0), "branch.reach": POS,
     "branch.tries": validate.Int(1), "plans.kinds": validate.ListOf(validate.OneOf(KINDS)),
     "plans.y_push": validate.Range(0), "plans.dv": validate.Range(0), "plans.delay": validate.ListOf(validate.Int(0), 2),
     "plans.k_y": POS, "plans.a_bounds": validate.Range(strict=True), "reference.draws": validate.Int(1),
     "score.threshold": validate.Real(0), "score.tolerance": validate.Real(0), "score.resamples": validate.Int(0),
+    "score.forced": POS,
     "dataset.seed": validate.SEED, "dataset.episodes": validate.Int(1),
 }
 
@@ -70,15 +81,49 @@ def first_order_response(source, pair: Pair):
     return np.einsum("tmkse,se->tmk", grads, pair.ego[1] - pair.ego[0])[:, 1:]
 
 
+def braking(xy, history, dt):
+    """The hardest braking (m/s^2, >= 0) of any other car over each rollout xy (..., T_p, SLOTS, 2) that follows the
+    observed history (T_obs, SLOTS, 2), with steps of dt (s)."""
+    a = accelerations(xy, np.broadcast_to(history, xy.shape[:-3] + history.shape), dt)
+    return np.maximum(0.0, -a.min(axis=(-2, -1))).round(6)  # to 1e-6 m/s^2: rounding noise must not rank plans
+
+
 def reference_response(pair: Pair, draws: int, rng: np.random.Generator):
-    """The world's own response (T_p, N, 2), m, averaged over `draws` re-draws of the drivers' decisions to yield; both
-    plans of a draw share its decisions."""
-    out = []
+    """The world's own response (T_p, N, 2), m, and braking under plans A and B (2,), m/s^2, averaged over `draws`
+    re-draws of the drivers' decisions to yield; both plans of a draw share its decisions."""
+    out, brakes = [], []
     for _ in range(draws):
         world = pair.world.redrawn(rng)
-        a, b = (execute(world, u, pair.ids)[0] for u in pair.controls)
-        out.append(b[:, 1:] - a[:, 1:])
-    return np.mean(out, axis=0)
+        xy = np.stack([execute(world, u, pair.ids)[0] for u in pair.controls])
+        out.append(xy[1, :, 1:] - xy[0, :, 1:])
+        brakes.append(braking(xy, pair.history, pair.world.params.dt))
+    return np.mean(out, axis=0), np.mean(brakes, axis=0)
+
+
+def follower_braking(s, pair: Pair):
+    """The braking (2,) in m/s^2 that the planner's nominal follower (planner.mpc.follower_braking, Settings s) judges
+    plans A and B to impose, on constant-velocity positions of the others, the ego's speed from its executed xy."""
+    from planner.mpc import Observation, follower_braking as judged
+
+    dt, T_p = pair.world.params.dt, pair.xy.shape[1]
+    cv = pair.history[-1] + np.arange(1, T_p + 1)[:, None, None] * (pair.history[-1] - pair.history[-2])
+    out = []
+    for ego in pair.ego:
+        x = np.concatenate([pair.history[-1:, 0, 0], ego[:, 0]])
+        Z = np.stack([ego[:, 0], ego[:, 1], np.zeros(T_p), np.diff(x) / dt], 1).ravel()
+        out.append(judged(s, Observation(np.zeros(4), np.zeros(2), pair.history), Z, cv))
+    return np.array(out)
+
+
+def brake_scores(pred, true, forced: float) -> dict:
+    """brake_corr and brake_auc (module doc) of predicted against true hardest braking per plan, both (P, 2) in m/s^2."""
+    from scipy.stats import mannwhitneyu
+
+    p, t = np.ravel(pred), np.ravel(true)
+    corr = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 and t.std() > 0 else 0.0
+    pos, neg = p[t > forced], p[t <= forced]
+    auc = float(mannwhitneyu(pos, neg).statistic / (len(pos) * len(neg))) if len(pos) and len(neg) else float("nan")
+    return {"brake_corr": corr, "brake_auc": auc}
 
 
 def peaks(response):
@@ -116,16 +161,24 @@ def intervals(pred, true, states, resamples: int, suffix: str = "", seed: int = 
 
 def predict(name: str, pairs: list[Pair], cfg) -> dict | None:
     """{"": rollout responses, "_jac": first-order responses} (P, T_p, N, 2) of source `name`, the reference's rollout
-    only; None (with one log line) when its model files are missing."""
+    only, the follower none; with "braking" (P, 2) under plans A and B, m/s^2. None (with one log line) when its model
+    files are missing."""
     if name == REFERENCE:
-        return {"": np.stack([reference_response(p, cfg.reference.draws, np.random.default_rng([p.seed, 4])) for p in pairs])}
+        out = [reference_response(p, cfg.reference.draws, np.random.default_rng([p.seed, 4])) for p in pairs]
+        return {"": np.stack([r for r, _ in out]), "braking": np.stack([b for _, b in out])}
+    if name == FOLLOWER:
+        from planner.setup import make
+
+        s = make(cfg.scenario.name, ["mpc=courteous"])[2]
+        return {"braking": np.stack([follower_braking(s, p) for p in pairs])}
     try:
         source = load_source(name, cfg.models_dir)
     except UserError as e:
         log.warning(f"{name}: skipped ({e})")
         return None
     return {"": np.stack([rollout_response(source, p) for p in pairs]),
-            "_jac": np.stack([first_order_response(source, p) for p in pairs])}
+            "_jac": np.stack([first_order_response(source, p) for p in pairs]),
+            "braking": np.stack([braking(source.values(p.history, p.ego), p.history, p.world.params.dt) for p in pairs])}
 
 
 def scatter(path: Path, name: str, true, preds: dict, metrics: dict):
@@ -166,9 +219,10 @@ def benchmark_stats(pairs: list[Pair], true, threshold: float) -> dict:
 
 
 def write_table(path: Path, table: dict):
-    """interaction.csv: one row per source, its react_* scores (with their intervals where computed) and seconds."""
+    """interaction.csv: one row per source, its react_* scores (with their intervals where computed), brake_* scores
+    and seconds."""
     cols = [f"react_{k}{s}{e}" for s in ("", "_jac") for k in ("corr", "gain", "hit")
-            for e in (("", "_lo", "_hi") if k != "hit" else ("",))] + ["seconds"]
+            for e in (("", "_lo", "_hi") if k != "hit" else ("",))] + ["brake_corr", "brake_auc", "seconds"]
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["source", *cols])
@@ -192,29 +246,33 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     pairs = make_pairs(scenario, dict(cfg.dataset.policy), cfg)
     true = np.stack([p.response for p in pairs])
+    true_braking = np.stack([braking(p.xy, p.history, p.world.params.dt) for p in pairs])
     states = np.array([f"{p.seed}/{p.step}" for p in pairs])
-    common = benchmark_stats(pairs, true, cfg.score.threshold)
+    common = {**benchmark_stats(pairs, true, cfg.score.threshold), "n_forcing_plans": int((true_braking > cfg.score.forced).sum())}
     log.info(f"{len(pairs)} pairs from {cfg.states} held-out branch states (seeds from {cfg.seed_offset}) in "
              f"{time.perf_counter() - t0:.1f} s; pairs with a real response (> {cfg.score.threshold} m): "
              f"{common['real_pair_share']:.1%} (" + ", ".join(f"{k[16:]} {v:.1%}" for k, v in common.items()
-                                                               if k.startswith("real_pair_share_")) + ")")
+                                                               if k.startswith("real_pair_share_")) + "); plans "
+             f"that make a driver brake harder than {cfg.score.forced} m/s^2: {common['n_forcing_plans']} of {2 * len(pairs)}")
     table = {}
     for name in cfg.sources:
         t0 = time.perf_counter()
         preds = predict(name, pairs, cfg)
         if preds is None:
             continue
-        metrics = {f"{k}{suffix}": v for suffix, pred in preds.items()
-                   for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()}
+        metrics = brake_scores(preds.pop("braking"), true_braking, cfg.score.forced)
+        metrics.update({f"{k}{suffix}": v for suffix, pred in preds.items()
+                        for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()})
         if cfg.score.resamples:
             for suffix, pred in preds.items():
                 metrics.update(intervals(pred, true, states, cfg.score.resamples, suffix))
         metrics["seconds"] = time.perf_counter() - t0
         with mlflow_run("interaction", cfg, run_name=f"interaction-{name}", source=name):
             mlflow.log_metrics({**metrics, **common})
-            png = out / f"scatter_{name}.png"
-            scatter(png, name, true, preds, metrics)
-            mlflow.log_artifact(str(png))
+            if preds:  # the follower predicts no response
+                png = out / f"scatter_{name}.png"
+                scatter(png, name, true, preds, metrics)
+                mlflow.log_artifact(str(png))
         table[name] = metrics
         log.info(f"{name:>9}: " + ", ".join(f"{k} {v:.3f}" for k, v in metrics.items()))
     write_table(out / "interaction.csv", table)

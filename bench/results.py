@@ -477,10 +477,14 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
     for k in seeds:
         for source, m in out[f"evaluate-interaction seed {k}"].items():
             inter_runs.setdefault(source, []).append(m)
-    keys = ("react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac")
+    keys = ("react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac", "brake_corr",
+            "brake_auc")
     inter = {s: over_trainings(v, keys) for s, v in inter_runs.items()}
     lines += ["## Interaction fidelity", "", "evaluate-interaction (bench/interaction.py): the response to paired ego plans "
-              "on held-out counterfactual branches; `_jac` is the first-order response the planner linearises.", ""]
+              "on held-out counterfactual branches; `_jac` is the first-order response the planner linearises. `brake_*`: "
+              "the hardest braking each plan imposes on another car, against the world's; brake_auc sorts the plans that "
+              "force a driver (above b_safe) from the rest (0.5: no better than chance). `follower`: the courteous "
+              "planner's nominal IDM follower, which judges braking for every source.", ""]
     lines += markdown(["source", *keys], [[s, *(fmt(v[k][0], ".3f", *v[k][1:]) for k in keys)] for s, v in inter.items()])
     random_rows = batch_rows(cfg, batches, "random", p.sources, rng)
     lines += ["## Random merges", "", f"`planner scenario=random episodes={p.episodes} method=both seed={cfg.planner_seed}` "

@@ -337,7 +337,7 @@ RESULTS = {
     **{f"results_preset.{k}": ListOf(GRADIENT_OPTIONS) for k in ("sources", "table2_sources")},
     "results_preset.scenarios": ListOf(OneOf(tuple(options("scenario")))),
     "results_preset.episodes": Int(1), "results_preset.table2_episodes": Int(1),
-    "results_preset.interaction_sources": ListOf(OneOf((*GRADIENT_OPTIONS.choices, "reference"))),
+    "results_preset.interaction_sources": ListOf(OneOf((*GRADIENT_OPTIONS.choices, "reference", "follower"))),
     "results_preset.dense_episodes": Int(1), "results_preset.calibration_episodes": Int(1),
     "results_preset.calibration": ListOf(OneOf(tuple(options("scenario")))), "results_preset.ceiling": OVERRIDES,
 }

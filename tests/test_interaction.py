@@ -9,7 +9,8 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from bench.branches import Pair, execute, heldout_seeds, make_pairs
-from bench.interaction import first_order_response, intervals, load_source, rollout_response, run, scores
+from bench.interaction import (brake_scores, braking, first_order_response, follower_braking, intervals, load_source,
+                               rollout_response, run, scores)
 from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import SLOTS, T_OBS
@@ -84,6 +85,44 @@ def test_cv_gives_zero_and_analytic_its_known_response(tmp_path):
     assert scores(rollout_response(analytic, pair)[None], true, 0.2, 0.5) == pytest.approx(
         {"react_corr": 1.0, "react_gain": 1.0, "react_hit": 1.0})
     assert scores(rollout_response(cv, pair)[None], true, 0.2, 0.5) == {"react_corr": 0.0, "react_gain": 0.0, "react_hit": 0.0}
+
+
+def test_braking_is_the_hardest_deceleration_of_another_car_after_the_history():
+    history, ego_a, _ = constructed_pair()
+    dt, k = 0.2, np.arange(1, T_P + 1, dtype=float)
+    xy = np.concatenate([ego_a[:, None], history[-1, 1:][None] + np.stack([k, 0 * k], -1)[:, None]], axis=1)  # cv
+    assert braking(xy, history, dt) == 0.0
+    xy[3:, 2, 0] -= 0.5 * 2.0 * (dt * np.arange(1, T_P - 2)) ** 2  # car 2 brakes at 2 m/s^2 from step 3
+    xy[:, 0, 0] += 9.0 * np.arange(T_P) ** 2  # the ego's own motion never counts
+    xy[5, 3, 0] -= 0.02  # car 3 jolts back 2 cm at step 5: 0.02 / 0.04 = 0.5 m/s^2 down, then up
+    assert braking(xy, history, dt) == pytest.approx(2.0)
+    assert np.array_equal(braking(np.stack([xy, xy]), history, dt), [2.0, 2.0])  # batched over leading axes
+    xy[1, 1, 0] = xy[0, 1, 0]  # car 1 stops dead at step 2: (0 - 1 m) / dt^2 = 25 m/s^2
+    assert braking(xy, history, dt) == pytest.approx(25.0)
+
+
+def test_brake_scores_rank_the_forcing_plans():
+    true = np.array([[0.0, 6.0], [1.0, 5.0], [2.0, 0.5]])  # m/s^2: two of six plans force (> 4)
+    assert brake_scores(true, true, 4.0) == pytest.approx({"brake_corr": 1.0, "brake_auc": 1.0})
+    assert brake_scores(np.zeros_like(true), true, 4.0) == {"brake_corr": 0.0, "brake_auc": 0.5}  # cv: all ties
+    swapped = np.array([[5.0, 0.0], [6.0, 1.0], [2.0, 0.5]])  # the forcing plans predicted at 0 and 1 m/s^2
+    assert brake_scores(swapped, true, 4.0)["brake_auc"] == pytest.approx(1 / 8)  # of 8 (forcing, tolerated) pairs only
+    # (1, 0.5) is ordered right
+    assert np.isnan(brake_scores(true, true, 10.0)["brake_auc"])  # no plan forces: nothing to sort
+
+
+def test_the_follower_row_judges_a_cut_in_close_ahead_of_a_car_and_not_a_plan_that_stays_in_lane():
+    from planner.setup import make
+
+    s = make("dense", ["mpc=courteous"])[2]
+    history, ego_a, _ = constructed_pair()  # cars in lane 1 at 20, 12, 6, -2 m moving 1 m per step; the ego at 10 m
+    k = np.arange(1, T_P + 1, dtype=float)
+    ego_b = np.stack([10.0 + k, np.minimum(0.8 * k, 4.0)], -1)  # into lane 1 (centre 4 m) by step 3, 4 m ahead of car 3
+    pair = Pair(0, 0, "push", history, np.arange(SLOTS), np.zeros((2, T_P, 2)),
+                np.stack([np.concatenate([e[:, None], np.zeros((T_P, SLOTS - 1, 2))], 1) for e in (ego_a, ego_b)]),
+                type("W", (), {"params": s.params})())
+    held, cut_in = follower_braking(s, pair)
+    assert held == 0.0 and cut_in > 4.0  # 5 m/s closing to a 0.4 m bumper gap: far beyond b_safe
 
 
 def test_scores_against_hand_computed_values():
@@ -187,14 +226,15 @@ def test_heldout_seeds_are_disjoint_from_the_datasets(tmp_path):
 
 
 def test_job_logs_one_run_per_source_and_skips_missing_models(tmp_path, caplog):
-    table = run(small_cfg(tmp_path, "sources=[cv,student,reference]", "reference.draws=2"))
-    assert list(table) == ["cv", "reference"]
+    table = run(small_cfg(tmp_path, "sources=[cv,student,reference,follower]", "reference.draws=2"))
+    assert list(table) == ["cv", "reference", "follower"]
     assert "student: skipped" in caplog.text
     assert table["cv"]["react_gain_jac"] == 0.0 and "react_gain_jac" not in table["reference"]
+    assert table["cv"]["brake_corr"] == 0.0 and "react_corr" not in table["follower"] and "brake_corr" in table["follower"]
     with open(tmp_path / "interaction.csv") as f:
-        assert [r["source"] for r in csv.DictReader(f)] == ["cv", "reference"]
+        assert [r["source"] for r in csv.DictReader(f)] == ["cv", "reference", "follower"]
     runs = mlflow.search_runs(experiment_names=["interaction"], filter_string="params.states = '3'")
-    assert sorted(runs["params.source"])[-2:] == ["cv", "reference"]
+    assert sorted(runs["params.source"])[-3:] == ["cv", "follower", "reference"]
     artifacts = mlflow.artifacts.list_artifacts(run_id=runs.loc[runs["params.source"] == "cv", "run_id"].iloc[0])
     assert "scatter_cv.png" in [a.path for a in artifacts]
 
