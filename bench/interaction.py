@@ -13,7 +13,8 @@ Scores over all pairs, cars, steps and both coordinates:
               along the truth, 0 no response (or one uncorrelated with it);
   react_hit   over every (pair, car) whose true response peaks above score.threshold over T_p, the share whose peak error
               max_t |p_t - t_t| is within score.tolerance of that peak;
-and, with score.resamples > 0, 95% bootstrap intervals of react_corr and react_gain over the branch states (*_lo, *_hi).
+and, with score.resamples > 0, 95% bootstrap intervals of react_corr, react_gain and the brake_* scores below over the
+branch states (*_lo, *_hi).
 
 The braking each plan imposes, the hardest deceleration of any other car over T_p (m/s^2; the planner's courtesy rows
 and its choice judge plans by it), is scored per plan (two per pair) against the world's:
@@ -103,7 +104,7 @@ def reference_response(pair: Pair, draws: int, rng: np.random.Generator):
 def follower_braking(s, pair: Pair):
     """The braking (2,) in m/s^2 that the planner's nominal follower (planner.mpc.follower_braking, Settings s) judges
     plans A and B to impose, on constant-velocity positions of the others, the ego's speed from its executed xy."""
-    from planner.mpc import Observation, follower_braking as judged
+    from planner import mpc
 
     dt, T_p = pair.world.params.dt, pair.xy.shape[1]
     cv = pair.history[-1] + np.arange(1, T_p + 1)[:, None, None] * (pair.history[-1] - pair.history[-2])
@@ -111,7 +112,7 @@ def follower_braking(s, pair: Pair):
     for ego in pair.ego:
         x = np.concatenate([pair.history[-1:, 0, 0], ego[:, 0]])
         Z = np.stack([ego[:, 0], ego[:, 1], np.zeros(T_p), np.diff(x) / dt], 1).ravel()
-        out.append(judged(s, Observation(np.zeros(4), np.zeros(2), pair.history), Z, cv))
+        out.append(mpc.follower_braking(s, mpc.Observation(np.zeros(4), np.zeros(2), pair.history), Z, cv))
     return np.array(out)
 
 
@@ -149,14 +150,16 @@ def scores(pred, true, threshold: float, tolerance: float) -> dict:
     return {"react_corr": corr, "react_gain": gain, "react_hit": hit}
 
 
-def intervals(pred, true, states, resamples: int, suffix: str = "", seed: int = 0) -> dict:
-    """95% percentile-bootstrap intervals {react_corr<suffix>_lo, _hi, react_gain<suffix>_lo, _hi} of pred against true
-    (P, T_p, N, 2), resampling branch states: the pairs of one state (states: (P,) labels) share its world, so they are
-    drawn together. Real responses are rare (about 6% of pairs), so the scores move by tenths between state sets."""
+def intervals(pred, true, states, resamples: int, suffix: str = "", seed: int = 0, score=None) -> dict:
+    """95% percentile-bootstrap intervals {<name>_lo, <name>_hi} of score(pred, true) -> {name: value}, pred and true
+    indexed by pair first (default: react_corr<suffix> and react_gain<suffix> of responses (P, T_p, N, 2)), resampling
+    branch states: the pairs of one state (states: (P,) labels) share its world, so they are drawn together. Real
+    responses are rare (about 6% of pairs), so the scores move by tenths between state sets."""
+    score = score or (lambda p, t: dict(zip((f"react_corr{suffix}", f"react_gain{suffix}"), corr_gain(p, t))))
+    names = list(score(pred, true))
     members = [np.flatnonzero(states == k) for k in np.unique(states)]
-    lo, hi = bootstrap(members, lambda idx: corr_gain(pred[idx], true[idx]), resamples, seed, within=False)
-    return {f"react_corr{suffix}_lo": lo[0], f"react_corr{suffix}_hi": hi[0], f"react_gain{suffix}_lo": lo[1],
-            f"react_gain{suffix}_hi": hi[1]}
+    lo, hi = bootstrap(members, lambda idx: list(score(pred[idx], true[idx]).values()), resamples, seed, within=False)
+    return {**{f"{n}_lo": v for n, v in zip(names, lo)}, **{f"{n}_hi": v for n, v in zip(names, hi)}}
 
 
 def predict(name: str, pairs: list[Pair], cfg) -> dict | None:
@@ -222,7 +225,8 @@ def write_table(path: Path, table: dict):
     """interaction.csv: one row per source, its react_* scores (with their intervals where computed), brake_* scores
     and seconds."""
     cols = [f"react_{k}{s}{e}" for s in ("", "_jac") for k in ("corr", "gain", "hit")
-            for e in (("", "_lo", "_hi") if k != "hit" else ("",))] + ["brake_corr", "brake_auc", "seconds"]
+            for e in (("", "_lo", "_hi") if k != "hit" else ("",))] + \
+        [f"brake_{k}{e}" for k in ("corr", "auc") for e in ("", "_lo", "_hi")] + ["seconds"]
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["source", *cols])
@@ -260,12 +264,15 @@ def run(cfg: DictConfig) -> dict:
         preds = predict(name, pairs, cfg)
         if preds is None:
             continue
-        metrics = brake_scores(preds.pop("braking"), true_braking, cfg.score.forced)
+        brakes = preds.pop("braking")
+        metrics = brake_scores(brakes, true_braking, cfg.score.forced)
         metrics.update({f"{k}{suffix}": v for suffix, pred in preds.items()
                         for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()})
         if cfg.score.resamples:
             for suffix, pred in preds.items():
                 metrics.update(intervals(pred, true, states, cfg.score.resamples, suffix))
+            metrics.update(intervals(brakes, true_braking, states, cfg.score.resamples,
+                                     score=lambda p, t: brake_scores(p, t, cfg.score.forced)))
         metrics["seconds"] = time.perf_counter() - t0
         with mlflow_run("interaction", cfg, run_name=f"interaction-{name}", source=name):
             mlflow.log_metrics({**metrics, **common})

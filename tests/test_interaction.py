@@ -9,8 +9,17 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from bench.branches import Pair, execute, heldout_seeds, make_pairs
-from bench.interaction import (brake_scores, braking, first_order_response, follower_braking, intervals, load_source,
-                               rollout_response, run, scores)
+from bench.interaction import (
+    brake_scores,
+    braking,
+    first_order_response,
+    follower_braking,
+    intervals,
+    load_source,
+    rollout_response,
+    run,
+    scores,
+)
 from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import SLOTS, T_OBS
@@ -109,6 +118,13 @@ def test_brake_scores_rank_the_forcing_plans():
     assert brake_scores(swapped, true, 4.0)["brake_auc"] == pytest.approx(1 / 8)  # of 8 (forcing, tolerated) pairs only
     # (1, 0.5) is ordered right
     assert np.isnan(brake_scores(true, true, 10.0)["brake_auc"])  # no plan forces: nothing to sort
+    rng = np.random.default_rng(1)
+    true = rng.exponential(2.0, (60, 2))  # 60 pairs of 20 branch states
+    pred = true + rng.normal(0.0, 1.5, true.shape)
+    ci = intervals(pred, true, np.repeat(np.arange(20), 3), 300, score=lambda p, t: brake_scores(p, t, 4.0))
+    point = brake_scores(pred, true, 4.0)
+    assert set(ci) == {"brake_corr_lo", "brake_corr_hi", "brake_auc_lo", "brake_auc_hi"}
+    assert all(ci[f"{k}_lo"] < point[k] < ci[f"{k}_hi"] for k in point) and ci["brake_auc_hi"] <= 1.0
 
 
 def test_the_follower_row_judges_a_cut_in_close_ahead_of_a_car_and_not_a_plan_that_stays_in_lane():
