@@ -12,6 +12,11 @@ copy of the world until it has merged and kept `settle` more steps without anyon
 (a collision, braking above b_safe, the lane's end, max_steps); a rollout that can no longer beat the best merge found so
 far stops early. Each copy drives its own drivers: the world never follows a plan. A diagnostic: it knows what no
 planner can (the hidden decisions, by trial), so no planner should ever beat it on a world.
+
+With blind.episodes > 0 it also reports the best fixed strategy (`blind`): every searched strategy is driven on
+blind.episodes other worlds (seeds blind.seed on, never the batch's), and the one with the most courteous merges there
+is driven on each world of the batch. A strategy chosen without the hidden decisions: how much of the ceiling is
+knowing them.
 """
 import itertools
 import logging
@@ -263,27 +268,49 @@ def held_in_lane(world: World, scenario, steps) -> float:
     return outcomes.b_imposed_max(np.array(states), scenario.params.dt)
 
 
-def ceiling(scenario, cfg, seed: int) -> dict:
+def courteous_strategies(scenario, cfg, seed: int) -> np.ndarray:
+    """Whether each strategy of policies() merges courteously on world `seed` (no early stop: every one is driven)."""
+    world = scenario.make_world(seed)
+    return np.array([rollout(world, p, scenario, cfg.max_steps, cfg.search.settle).courteous
+                     for p in policies(scenario, cfg.search)])
+
+
+def blind_strategy(scenario, cfg) -> tuple[int, float]:
+    """The index in policies() of the strategy with the most courteous merges on the blind worlds (seeds blind.seed
+    on), and that share."""
+    seeds = range(cfg.blind.seed, cfg.blind.seed + cfg.blind.episodes)
+    hits = np.mean(Parallel(n_jobs=cfg.n_jobs)(delayed(courteous_strategies)(scenario, cfg, s) for s in seeds), axis=0)
+    best = int(np.argmax(hits))
+    return best, float(hits[best])
+
+
+def ceiling(scenario, cfg, seed: int, blind: int | None = None) -> dict:
     """One world's row: the search with its true hidden decisions and with every driver stubborn, and the braking the
-    world shows with the ego held in its lane."""
+    world shows with the ego held in its lane; with `blind` (an index in policies()), that strategy's outcome too."""
     world = scenario.make_world(seed)
     true = search_world(world, scenario, cfg)
     nobody = np.zeros(len(world.states()), bool)
     # where nobody yields (every highway-env world) the stubborn world is the true one: its search would repeat this one
     stubborn = true if not world.decisions().any() else search_world(world.with_decisions(nobody), scenario, cfg)
-    return {"seed": seed, "ceiling_courteous": float(true.courteous), "ceiling_t_merge": float(true.t_merge),
-            "ceiling_b_imposed": true.b_imposed, "ceiling_policy": true.policy,
-            "never_yield_courteous": float(stubborn.courteous), "never_yield_t_merge": float(stubborn.t_merge),
-            "never_yield_b_imposed": stubborn.b_imposed, "never_yield_policy": stubborn.policy,
-            "held_b_imposed": held_in_lane(world, scenario, cfg.max_steps)}
+    row = {"seed": seed, "ceiling_courteous": float(true.courteous), "ceiling_t_merge": float(true.t_merge),
+           "ceiling_b_imposed": true.b_imposed, "ceiling_policy": true.policy,
+           "never_yield_courteous": float(stubborn.courteous), "never_yield_t_merge": float(stubborn.t_merge),
+           "never_yield_b_imposed": stubborn.b_imposed, "never_yield_policy": stubborn.policy,
+           "held_b_imposed": held_in_lane(world, scenario, cfg.max_steps)}
+    if blind is not None:
+        fixed = rollout(world, policies(scenario, cfg.search)[blind], scenario, cfg.max_steps, cfg.search.settle)
+        row.update({"blind_courteous": float(fixed.courteous), "blind_t_merge": float(fixed.t_merge),
+                    "blind_b_imposed": fixed.b_imposed, "blind_policy": fixed.policy})
+    return row
 
 
 def aggregate(rows) -> dict:
-    """The batch's rates (Wilson 95%) and mean t_merge over courteous worlds (Student t 95%) for both searches."""
+    """The batch's rates (Wilson 95%) and mean t_merge over courteous worlds (Student t 95%) for both searches, and for
+    the best fixed strategy where the rows have it."""
     held = np.array([r["held_b_imposed"] for r in rows], float)
     out = {"worlds": float(len(rows)), "held_b_imposed_max": float(held.max(initial=0.0)),
            "held_calm": float(np.mean(held <= 2.0)) if len(held) else float("nan")}
-    for k in ("ceiling", "never_yield"):
+    for k in ["ceiling", "never_yield"] + (["blind"] if rows and "blind_courteous" in rows[0] else []):
         hits = np.array([r[f"{k}_courteous"] for r in rows], float)
         out[f"{k}_courteous"] = float(hits.mean()) if len(hits) else float("nan")
         out[f"{k}_courteous_lo"], out[f"{k}_courteous_hi"] = stats.wilson(float(hits.sum()), len(hits))
@@ -293,10 +320,15 @@ def aggregate(rows) -> dict:
 
 
 def check(cfg):
-    """One line for a setting the search cannot honour: a world other than the reactive one, too small a search."""
+    """One line for a setting the search cannot honour: a world other than the reactive one, too small a search, blind
+    worlds among the batch's."""
     validate.check(cfg, "ceiling")
     if cfg.world != "reactive":
         raise UserError(f"world={cfg.world}: the ceiling searches copies of the true world; it needs world=reactive")
+    blind = range(cfg.blind.seed, cfg.blind.seed + cfg.blind.episodes)
+    if set(blind) & set(range(cfg.seed, cfg.seed + cfg.episodes)):
+        raise UserError(f"blind.seed={cfg.blind.seed}: its {cfg.blind.episodes} worlds overlap the batch's (seed "
+                        f"{cfg.seed}, {cfg.episodes} episodes); the strategy must be chosen on other worlds")
 
 
 @guarded
@@ -306,18 +338,23 @@ def run(cfg: DictConfig) -> dict:
     scenario = build(cfg.scenario)
     out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir), "out_dir")
     seeds = range(cfg.seed, cfg.seed + cfg.episodes)
+    blind, blind_share = blind_strategy(scenario, cfg) if cfg.blind.episodes else (None, None)
     with mlflow_run("ceiling", cfg, run_name=f"ceiling-{scenario.name}", scenario=scenario.name, seed=cfg.seed):
-        rows = Parallel(n_jobs=cfg.n_jobs)(delayed(ceiling)(scenario, cfg, s) for s in seeds)
+        rows = Parallel(n_jobs=cfg.n_jobs)(delayed(ceiling)(scenario, cfg, s, blind) for s in seeds)
         csv_path = out_dir / f"ceiling_{scenario.name}.csv"
         atomic_file(csv_path, lambda p: pd.DataFrame(rows).to_csv(p, index=False))
         r = aggregate(rows)
-        mlflow.log_metrics(r)
+        mlflow.log_metrics(r if blind is None else {**r, "blind_choice_share": blind_share})
         mlflow.log_artifact(str(csv_path))
     ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
     log.info(f"{scenario.name}, {len(rows)} worlds from seed {cfg.seed} (95% intervals): courteous merge "
              f"{ci('ceiling_courteous', '.1%')} in {ci('ceiling_t_merge', '.1f')} steps; never yield "
              f"{ci('never_yield_courteous', '.1%')} in {ci('never_yield_t_merge', '.1f')} steps; ego held in its lane: others "
              f"brake at most {r['held_b_imposed_max']:.2f} m/s^2; per world: {csv_path}")
+    if blind is not None:
+        log.info(f"best fixed strategy on the {cfg.blind.episodes} worlds from seed {cfg.blind.seed} "
+                 f"({policies(scenario, cfg.search)[blind].name}: {blind_share:.1%} there): courteous merge "
+                 f"{ci('blind_courteous', '.1%')} here")
     return r
 
 

@@ -362,7 +362,8 @@ CEILING = {
     "max_steps": Int(1), "out_dir": Text(nullable=True), "search.gaps": Int(0),
     "search.y_lean": ListOf(POS, at_least=1), "search.clearance": ListOf(NONNEG, at_least=1), "search.settle": Int(0),
     "search.enter": ListOf(Int(0)), "search.dv": ListOf(Real()),
-    "search.y_wait": ListOf(Real(), at_least=1), "search.accept_dv": ListOf(Real()),
+    "search.y_wait": ListOf(Real(), at_least=1), "search.accept_dv": ListOf(Real()), "blind.seed": SEED,
+    "blind.episodes": Int(0),
 }
 
 CROSS_WORLD = {

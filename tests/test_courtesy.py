@@ -1,5 +1,6 @@
 """Physics, courtesy metrics, perception and the clairvoyant ceiling on hand-built worlds and the dense scenario."""
 import numpy as np
+import pandas as pd
 import pytest
 from hydra.utils import instantiate
 
@@ -107,6 +108,29 @@ def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
                         [False] * 21, v0=5.0, T=0.1, s0=0.4)
     walled = instantiate(compose_cfg("ceiling", ["scenario=dense", "scenario.x_ref=20"]).scenario, _convert_="all")
     assert not ceiling.search_world(closed, walled, cfg).courteous
+
+
+def test_the_best_fixed_strategy_is_chosen_on_other_worlds_and_driven_on_the_batch(tmp_path, capsys):
+    tiny = ["search.gaps=0", "search.y_lean=[1.8]", "search.clearance=[1.0]", "search.enter=[1000]", "search.dv=[0.0]",
+            "search.y_wait=[0.0]", "search.accept_dv=[-10.0]", "n_jobs=1"]  # a cut-in that never turns in, and two
+    cfg = compose_cfg("ceiling", [*tiny, "episodes=2", "blind.episodes=3", f"out_dir={tmp_path / 'out'}"])
+    sc = scenario("dense")
+    names = [p.name for p in ceiling.policies(sc, cfg.search)]
+    assert len(names) == 3 and names[0].startswith("cut in at step 1000")
+    hits = np.array([ceiling.courteous_strategies(sc, cfg, 3_000_000 + k) for k in range(3)])
+    assert not hits[:, 0].any() and hits.any()  # the cut-in never merges; the gap-takers do somewhere
+    best, share = ceiling.blind_strategy(sc, cfg)
+    assert share == hits.mean(0).max() and hits[:, best].mean() == share and best != 0
+    r = ceiling.run(cfg)
+    rows = pd.read_csv(tmp_path / "out" / "ceiling_dense.csv")
+    assert set(rows["blind_policy"]) == {names[best]} and r["blind_courteous"] == rows["blind_courteous"].mean()
+    # chosen on the batch's own worlds it would know them: refused, nothing written
+    with pytest.raises(SystemExit) as e:
+        ceiling.run(compose_cfg("ceiling", [*tiny, "episodes=2", "blind.seed=2000001", "blind.episodes=3",
+                                            f"out_dir={tmp_path / 'again'}"]))
+    assert e.value.code == 2 and not (tmp_path / "again").exists()
+    assert capsys.readouterr().err.strip().endswith("error: blind.seed=2000001: its 3 worlds overlap the batch's (seed "
+                                                    "2000000, 2 episodes); the strategy must be chosen on other worlds")
 
 
 def test_gap_acceptance_turns_in_ahead_of_a_car_stopped_for_it_and_never_reverses():
