@@ -47,7 +47,8 @@ METHODS = ("admm", "nnmpc")
 MODELS = ("cv", "teacher", "student")  # predictors of the accuracy table; cv from the cv_* metrics of the teacher's runs
 GRADIENT_ROWS = {"surrogate": "", "student": "_student", "constant velocity (baseline)": "_cv",
                  "mean Jacobian (baseline)": "_mean"}  # the surrogate job's metrics per row: grad_rel_err, grad_rel_err_student, ...
-SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling"}  # the ceiling's two searches and their row names
+SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling", "blind": "best fixed strategy"}  # the ceiling's
+# searches and their row names; the dense ceiling's best fixed strategy only with results_preset.blind_episodes > 0
 
 
 class Plan:
@@ -163,7 +164,8 @@ def build_plan(cfg, work: Path):
     for scenario, worlds in ceiling_worlds(p).items():
         plan.add(f"ceiling {scenario}", ceiling.run, job_config("ceiling", [
             f"scenario={scenario}", f"seed={cfg.planner_seed}", f"episodes={worlds}", f"n_jobs={cfg.n_jobs}",
-            f"out_dir={work / 'ceiling'}", *p.ceiling]))
+            f"out_dir={work / 'ceiling'}", *([f"blind.episodes={p.blind_episodes}"] if scenario == "dense" else []),
+            *p.ceiling]))
     if p.bench is not None:
         plan.add("bench step time", step_time.run, job_config("bench", [
             f"models_dir={models(p.training_seeds[0])}", f"states.path={work / 'bench' / 'states.npz'}", *p.bench]))
@@ -363,13 +365,14 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
     p = cfg.results_preset
     worlds = read_ceiling(work, "dense")
     labels = [*p.sources, *(label(s, [f"mpc={m}"]) for m in p.dense_mpc for s in p.sources)]
+    searches = {k: name for k, name in SEARCHES.items() if f"{k}_courteous" in out["ceiling dense"]}
     rows = {**batch_rows(cfg, batches, "dense", labels, rng),
             **{(name, ""): ceiling_row(out["ceiling dense"], worlds, k, cfg.bootstrap.resamples, rng)
-               for k, name in SEARCHES.items()}}
+               for k, name in searches.items()}}
     dense = {(s, k): f for (scen, s, k), f in batches.items() if scen == "dense"}
     braking = {f"{s} {m.upper()}": [e["b_imposed_max"] for (src, _), f in dense.items() if src == s for e in read_episodes(f, m)]
                for s, m in rows if m}
-    braking.update({name: [w[f"{k}_b_imposed"] for w in worlds] for k, name in SEARCHES.items()})
+    braking.update({name: [w[f"{k}_b_imposed"] for w in worlds] for k, name in searches.items()})
     sc = job_config("ceiling", ["scenario=dense", *p.ceiling]).scenario
     braking_plot(braking, sc.b_safe, sc.b_max, dest / "b_imposed.png")
     beats = {(s, m, k): beaten(worlds, read_episodes(f, m)) for (s, k), f in dense.items() for m in methods(f)}
@@ -382,7 +385,9 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
              f"`planner scenario=dense episodes={p.dense_episodes} method=both seed={cfg.planner_seed}` per gradient source and "
              "training, and `ceiling scenario=dense` on the same worlds: the clairvoyant ceiling searches cut-ins, gap acceptance and gap-targeting "
              "strategies on copies of each world with its true hidden decisions, the never-yield ceiling the same with every "
-             "driver stubborn (bench/ceiling.py). A merge is courteous when nothing collides and nobody brakes harder than "
+             "driver stubborn, the best fixed strategy the one search strategy with the most courteous merges on "
+             f"{p.blind_episodes} other worlds (seeds {job_config('ceiling', []).blind.seed} on), driven blind on these "
+             "(bench/ceiling.py). A merge is courteous when nothing collides and nobody brakes harder than "
              f"b_safe = {sc.b_safe:g} m/s^2. t_merge: over the planners' merged episodes, the ceiling's courteous worlds (its "
              "interval Student t); the ceiling's braking on a world it found no courteous merge in is its least-braking "
              "attempt's. Rows `<source> <option>` are ADMM with that conf/mpc/ option (`mpc=courteous`: courtesy rows, repair, "

@@ -339,6 +339,7 @@ RESULTS = {
     "results_preset.episodes": Int(1), "results_preset.table2_episodes": Int(1),
     "results_preset.interaction_sources": ListOf(OneOf((*GRADIENT_OPTIONS.choices, "reference", "follower"))),
     "results_preset.dense_episodes": Int(1), "results_preset.calibration_episodes": Int(1),
+    "results_preset.blind_episodes": Int(0),
     "results_preset.calibration": ListOf(OneOf(tuple(options("scenario")))), "results_preset.ceiling": OVERRIDES,
 }
 

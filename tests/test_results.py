@@ -125,7 +125,9 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
         assert row(6)[0] == pytest.approx(np.mean([e["b_imposed_max"] for e in eps]), abs=0.0051)
         assert row(7) == pytest.approx(rate_cell([e["collision"] for e in eps]), abs=0.051)
         beat |= {e["seed"] for e in eps if e["courteous"] and e["t_merge"] < best[e["seed"]]}
-    for search, name in (("ceiling", "ceiling"), ("never_yield", "never-yield ceiling")):
+    assert "blind_courteous" not in worlds["random"][0]  # the best fixed strategy: the dense worlds' alone
+    assert {w["blind_policy"] for w in worlds["dense"]} == {w["blind_policy"] for w in worlds["dense"][:1]}  # one for all
+    for search, name in (("ceiling", "ceiling"), ("never_yield", "never-yield ceiling"), ("blind", "best fixed strategy")):
         row = lambda c: cell(md, "Dense traffic (headline)", name, "-", c)
         hits = [w[f"{search}_courteous"] for w in dense]
         assert numbers(row(3)) == pytest.approx(rate_cell(hits), abs=0.051)
