@@ -172,7 +172,7 @@ def predict(name: str, pairs: list[Pair], cfg) -> dict | None:
     if name == FOLLOWER:
         from planner.setup import make
 
-        s = make(cfg.scenario.name, ["mpc=courteous"])[2]
+        s = make(cfg.scenario.name, ["mpc=courteous", "gradients=cv"])[2]  # cv: no model files needed
         return {"braking": np.stack([follower_braking(s, p) for p in pairs])}
     try:
         source = load_source(name, cfg.models_dir)

@@ -130,7 +130,7 @@ def test_brake_scores_rank_the_forcing_plans():
 def test_the_follower_row_judges_a_cut_in_close_ahead_of_a_car_and_not_a_plan_that_stays_in_lane():
     from planner.setup import make
 
-    s = make("dense", ["mpc=courteous"])[2]
+    s = make("dense", ["mpc=courteous", "gradients=cv"])[2]
     history, ego_a, _ = constructed_pair()  # cars in lane 1 at 20, 12, 6, -2 m moving 1 m per step; the ego at 10 m
     k = np.arange(1, T_P + 1, dtype=float)
     ego_b = np.stack([10.0 + k, np.minimum(0.8 * k, 4.0)], -1)  # into lane 1 (centre 4 m) by step 3, 4 m ahead of car 3
