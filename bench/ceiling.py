@@ -275,18 +275,18 @@ def courteous_strategies(scenario, cfg, seed: int) -> np.ndarray:
                      for p in policies(scenario, cfg.search)])
 
 
-def blind_strategy(scenario, cfg) -> tuple[int, float]:
-    """The index in policies() of the strategy with the most courteous merges on the blind worlds (seeds blind.seed
-    on), and that share."""
+def blind_strategy(scenario, cfg):
+    """The strategy of policies() with the most courteous merges on the blind worlds (seeds blind.seed on), and that
+    share."""
     seeds = range(cfg.blind.seed, cfg.blind.seed + cfg.blind.episodes)
     hits = np.mean(Parallel(n_jobs=cfg.n_jobs)(delayed(courteous_strategies)(scenario, cfg, s) for s in seeds), axis=0)
     best = int(np.argmax(hits))
-    return best, float(hits[best])
+    return policies(scenario, cfg.search)[best], float(hits[best])
 
 
-def ceiling(scenario, cfg, seed: int, blind: int | None = None) -> dict:
+def ceiling(scenario, cfg, seed: int, blind=None) -> dict:
     """One world's row: the search with its true hidden decisions and with every driver stubborn, and the braking the
-    world shows with the ego held in its lane; with `blind` (an index in policies()), that strategy's outcome too."""
+    world shows with the ego held in its lane; with `blind` (a strategy of policies()), its outcome too."""
     world = scenario.make_world(seed)
     true = search_world(world, scenario, cfg)
     nobody = np.zeros(len(world.states()), bool)
@@ -298,7 +298,7 @@ def ceiling(scenario, cfg, seed: int, blind: int | None = None) -> dict:
            "never_yield_b_imposed": stubborn.b_imposed, "never_yield_policy": stubborn.policy,
            "held_b_imposed": held_in_lane(world, scenario, cfg.max_steps)}
     if blind is not None:
-        fixed = rollout(world, policies(scenario, cfg.search)[blind], scenario, cfg.max_steps, cfg.search.settle)
+        fixed = rollout(world, blind, scenario, cfg.max_steps, cfg.search.settle)
         row.update({"blind_courteous": float(fixed.courteous), "blind_t_merge": float(fixed.t_merge),
                     "blind_b_imposed": fixed.b_imposed, "blind_policy": fixed.policy})
     return row
@@ -353,7 +353,7 @@ def run(cfg: DictConfig) -> dict:
              f"brake at most {r['held_b_imposed_max']:.2f} m/s^2; per world: {csv_path}")
     if blind is not None:
         log.info(f"best fixed strategy on the {cfg.blind.episodes} worlds from seed {cfg.blind.seed} "
-                 f"({policies(scenario, cfg.search)[blind].name}: {blind_share:.1%} there): courteous merge "
+                 f"({blind.name}: {blind_share:.1%} there): courteous merge "
                  f"{ci('blind_courteous', '.1%')} here")
     return r
 

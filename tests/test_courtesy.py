@@ -119,7 +119,8 @@ def test_the_best_fixed_strategy_is_chosen_on_other_worlds_and_driven_on_the_bat
     assert len(names) == 3 and names[0].startswith("cut in at step 1000")
     hits = np.array([ceiling.courteous_strategies(sc, cfg, 3_000_000 + k) for k in range(3)])
     assert not hits[:, 0].any() and hits.any()  # the cut-in never merges; the gap-takers do somewhere
-    best, share = ceiling.blind_strategy(sc, cfg)
+    policy, share = ceiling.blind_strategy(sc, cfg)
+    best = names.index(policy.name)
     assert share == hits.mean(0).max() and hits[:, best].mean() == share and best != 0
     r = ceiling.run(cfg)
     rows = pd.read_csv(tmp_path / "out" / "ceiling_dense.csv")
