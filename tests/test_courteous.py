@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import b_i
 from planner import admm, mpc
@@ -85,7 +86,8 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
                        for k in T])
     history = np.array([[z0[:2], track(behind, 6.0, k), track(ahead, 4.0, k), far, far] for k in range(-7, 1)])
     obs = mpc.Observation(z0, np.zeros(2), history)
-    want = max(0.0, max(-_idm(6.0, 5.0 * dt * k - (behind + 6.0 * dt * k) - 3.6, 5.0) for k in T))
+    # the nominal follower of mpc=courteous: IDM with the cautious end of the dense drivers' headway and gap
+    want = max(0.0, max(-_idm(6.0, 5.0 * dt * k - (behind + 6.0 * dt * k) - 3.6, 5.0, T=0.5, s0=1.6) for k in T))
     assert want > 4.0  # closing in at 1 m/s from 2.4 m: a forced merge by IDM, which cv predicts as no braking at all
     assert mpc.follower_braking(s, obs, Z, values) == pytest.approx(want, rel=1e-9)
     in_lane = Z.reshape(-1, 4).copy()
@@ -99,6 +101,12 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
     inside = obs._replace(z0=np.array([0.0, 2.1, 0.0, 5.0]))  # halfway in: the lane it enters is its own now
     assert mpc.follower_braking(s, inside, Z, values) == pytest.approx(want, rel=1e-9)
     assert make("two_lane", ["gradients=cv"])[2].follower is None  # the paper's step judges no gap
+
+
+def test_the_nominal_follower_is_no_more_tolerant_than_any_dense_driver_on_headway_and_gap():
+    ranges = compose_cfg("planner", ["scenario=dense"]).scenario.driver_ranges
+    follower = make("dense", ["gradients=cv", "mpc=courteous"])[2].follower
+    assert (follower.T, follower.s0) == (max(ranges.T), max(ranges.s0))
 
 
 def _stream(s, back_x, back_v, back_a, front_v=5.0):
