@@ -15,10 +15,10 @@ from planner.setup import make
 
 @pytest.fixture(scope="module")
 def beside():
-    """mpc=courteous settings and cv on two_lane, the ego leaning in by 1.8 m at 5 m/s level with a car in the target
-    lane: on the edge of the safety shape (2.2 m across)."""
+    """mpc=courteous settings and cv on two_lane, the ego leaning in by 1.9 m at 5 m/s level with a car in the target
+    lane: on the edge of the safety shape (R = 2.1 m across)."""
     _, source, s = make("two_lane", ["gradients=cv", "mpc=courteous"])
-    z0 = np.array([0.0, 1.8, 0.0, 5.0])
+    z0 = np.array([0.0, 1.9, 0.0, 5.0])
     cars = np.array([[0.5, 4.0], [60.0, 4.0], [80.0, 4.0], [100.0, 4.0]])
     history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
     return s, source, mpc.Observation(z0, np.zeros(2), history)
@@ -29,7 +29,7 @@ def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_lea
     s, source, obs = beside
     Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
     b_min, Z = mpc.plan_safe(s, obs, source, Delta, alpha)
-    assert -0.5 < b_min < -s.check_tol  # 2.2 m across: 0.5 m^2 is 11 cm
+    assert -0.5 < b_min < -s.check_tol  # 2.1 m across: 0.5 m^2 is 12 cm
     fixed, b_fixed, _ = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
                                   admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
     assert b_fixed == pytest.approx(mpc.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
@@ -113,11 +113,11 @@ def _stream(s, back_x, back_v, back_a, front_v=5.0):
     """An observation with the ego leaning in at 1 m/s, a target-lane car ahead at front_v and one behind at back_x (m)
     now, driving at back_v (m/s) and accelerating at back_a (m/s^2) over the observed steps."""
     k = np.arange(-7, 1) * s.params.dt
-    ego = np.stack([1.0 * k, np.full(8, 1.8)], 1)
+    ego = np.stack([1.0 * k, np.full(8, 1.9)], 1)
     front = np.stack([8.0 + front_v * k, np.full(8, 4.0)], 1)
     back = np.stack([back_x + back_v * k + 0.5 * back_a * k**2, np.full(8, 4.0)], 1)
     far = np.stack([np.full(8, -60.0), np.full(8, 4.0)], 1)
-    return mpc.Observation(np.array([0.0, 1.8, 0.0, 1.0]), np.zeros(2), np.stack([ego, front, back, far, far], 1))
+    return mpc.Observation(np.array([0.0, 1.9, 0.0, 1.0]), np.zeros(2), np.stack([ego, front, back, far, far], 1))
 
 
 @pytest.mark.parametrize("back_x, back_v, back_a, v_lean", [
@@ -131,7 +131,7 @@ def test_a_lean_beside_a_car_seen_yielding_keeps_ahead_of_it_and_otherwise_keeps
     obs = _stream(s, back_x, back_v, back_a)
     starts = {name.split(",")[0]: aim.v_ref for name, _, aim in mpc.lane_starts(s, obs)}
     own = s.starts[0][2]
-    assert starts == {"y +1.8 m": pytest.approx(own if v_lean is None else v_lean, abs=1e-9), "y +0.0 m": s.v_ref}
+    assert starts == {"y +1.9 m": pytest.approx(own if v_lean is None else v_lean, abs=1e-9), "y +0.0 m": s.v_ref}
 
 
 def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(beside):
@@ -195,8 +195,8 @@ def test_a_superellipse_that_does_not_cover_the_bodies_is_one_line_and_the_court
     s = make("dense", ["gradients=cv", "mpc=courteous"])[2]
     dx, dy = 1.8 + 1.8 * np.cos(0.25) + 0.8 * np.sin(0.25), 0.8 + 1.8 * np.sin(0.25) + 0.8 * np.cos(0.25)  # by hand
     assert b_i(np.array([[[0.0, 0.0], [dx, dy]]]), s.R, s.stretch, s.shape)[0, 0] <= 0  # the corner lies inside
-    assert b_i(np.array([[[0.0, 0.0], [0.0, 2.21]]]), s.R, s.stretch, s.shape)[0, 0] > 0  # leaning 1.8 m beside a car
-    with pytest.raises(UserError, match=r"^mpc.shape=6 with R=2.2 m and mpc.stretch=2.05 does not cover two 3.6 x 1.6 m "
+    assert b_i(np.array([[[0.0, 0.0], [0.0, 2.11]]]), s.R, s.stretch, s.shape)[0, 0] > 0  # leaning 1.9 m beside a car
+    with pytest.raises(UserError, match=r"^mpc.shape=6 with R=2.1 m and mpc.stretch=2.4 does not cover two 3.6 x 1.6 m "
                                         r"bodies with the ego yawed up to 0.4 rad \(mpc.psi_box\)"):
         make("dense", ["gradients=cv", "mpc=courteous", "mpc.psi_box=[-0.4,0.4]"])
 
