@@ -178,7 +178,7 @@ def yielding_speed(s: Settings, history):
 
 def lane_starts(s: Settings, obs: Observation):
     """The extra ADMM solves (name, start, settings): for each [offset (m), a (m/s^2), v (m/s)] in s.starts, ADMM aims at
-    y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.8: lean in, the
+    y_ref = the current lane's centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.9: lean in, the
     nudge) and at v_ref = v (None: the scenario's), starting from holding the lane at a (lane_plan); with s.keep_ahead a
     lean (offset > 0) beside a car seen yielding aims at that car's speed plus dv instead, to take the room it opens
     (stopped, the ego would let it pass). The target lane's pull would draw every start into the same basin; these
