@@ -8,6 +8,7 @@ from omegaconf import DictConfig
 
 from core.jobs import UserError, build, job_config
 from core.rollout import b_i
+from data.drivers import IDMDriver
 from distill import certificate
 from planner import closed_loop, mpc
 from planner.gradients import Recording, WorldModel
@@ -27,10 +28,23 @@ def rho(cfg: DictConfig, scenario) -> float:
 
 
 def settings(cfg: DictConfig, scenario) -> mpc.Settings:
-    """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters."""
+    """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters, and its nominal
+    follower built from the parameters cfg.mpc.follower sets."""
+    follower = None if cfg.mpc.follower is None else nominal_follower(cfg.mpc.follower)
     # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
     return build(cfg.mpc, _partial_=True)(y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road,
-                                          params=scenario.params, rho=rho(cfg, scenario))
+                                          params=scenario.params, rho=rho(cfg, scenario), follower=follower)
+
+
+def nominal_follower(params) -> IDMDriver:
+    """The IDMDriver with `params` (name -> SI value) over its defaults; one UserError naming mpc.follower otherwise."""
+    known = set(IDMDriver.__dataclass_fields__)
+    for key, value in params.items():
+        if key not in known:
+            raise UserError(f"mpc.follower.{key}: IDMDriver has no such parameter (it has {', '.join(sorted(known))})")
+        if not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            raise UserError(f"mpc.follower.{key}={value}: must be a finite number >= 0")
+    return IDMDriver(**params)
 
 
 def setup(cfg: DictConfig):

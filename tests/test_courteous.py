@@ -109,6 +109,13 @@ def test_the_nominal_follower_is_no_more_tolerant_than_any_dense_driver_on_headw
     assert (follower.T, follower.s0) == (max(ranges.T), max(ranges.s0))
 
 
+@pytest.mark.parametrize("override,message", [("+mpc.follower.Tau=1", r"^mpc.follower.Tau: IDMDriver has no such "),
+                                              ("mpc.follower.T=nan", r"^mpc.follower.T=nan: must be a finite number")])
+def test_a_bad_nominal_follower_parameter_is_named_in_one_line(override, message):
+    with pytest.raises(UserError, match=message):
+        make("dense", ["gradients=cv", "mpc=courteous", override])
+
+
 def _stream(s, back_x, back_v, back_a, front_v=5.0):
     """An observation with the ego leaning in at 1 m/s, a target-lane car ahead at front_v and one behind at back_x (m)
     now, driving at back_v (m/s) and accelerating at back_a (m/s^2) over the observed steps."""
