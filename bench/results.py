@@ -149,9 +149,11 @@ def build_plan(cfg, work: Path):
         plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
     check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
     runs = [("dense", s, p.dense_episodes, []) for s in p.sources] + \
-        [("dense", s, p.dense_episodes, [f"mpc={m}", "method=admm"]) for m in p.dense_mpc for s in p.sources] + \
+        [("dense", s, p.dense_episodes, [f"mpc={m}", "method=admm"]) for m in p.mpc_options for s in p.sources] + \
         [("random", s, p.episodes, []) for s in p.sources] + \
-        [(sc, s, p.table2_episodes, []) for sc in p.scenarios for s in p.table2_sources]
+        [(sc, s, p.table2_episodes, extra) for sc in p.scenarios for extra in ([], *([f"mpc={m}", "method=admm"]
+                                                                                for m in p.mpc_options))
+         for s in p.table2_sources]
     for scenario, source, episodes, extra in runs:
         for k in p.training_seeds if source in TRAINED else [None]:
             row = label(source, extra)
@@ -180,6 +182,11 @@ def label(source: str, extra: list) -> str:
     """A batch's row name: the gradient source, with its conf/mpc/ option when not the paper's ("student courteous")."""
     mpc = [o.split("=", 1)[1] for o in extra if o.startswith("mpc=")]
     return " ".join([source, *mpc])
+
+
+def with_options(sources, options) -> list[str]:
+    """Row names of sources with the paper's step, then with each conf/mpc/ option ("student courteous")."""
+    return [*sources, *(label(s, [f"mpc={m}"]) for m in options for s in sources)]
 
 
 def methods(folder: Path) -> list[str]:
@@ -364,7 +371,7 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
     check that no planner beat the ceiling (logged too), and the ceiling's calibration table."""
     p = cfg.results_preset
     worlds = read_ceiling(work, "dense")
-    labels = [*p.sources, *(label(s, [f"mpc={m}"]) for m in p.dense_mpc for s in p.sources)]
+    labels = with_options(p.sources, p.mpc_options)
     searches = {k: name for k, name in SEARCHES.items() if f"{k}_courteous" in out["ceiling dense"]}
     rows = {**batch_rows(cfg, batches, "dense", labels, rng),
             **{(name, ""): ceiling_row(out["ceiling dense"], worlds, k, cfg.bootstrap.resamples, rng)
@@ -503,7 +510,8 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
     for scenario in p.scenarios:
         lines += [f"## Table II: {scenario}", "", f"{p.table2_episodes} episode(s) per training from seed {cfg.planner_seed}; "
                   f"the ceiling's t_merge from `ceiling scenario={scenario}` on the same worlds.", ""]
-        lines += outcome_table(batch_rows(cfg, batches, scenario, p.table2_sources, rng), out[f"ceiling {scenario}"])
+        lines += outcome_table(batch_rows(cfg, batches, scenario, with_options(p.table2_sources, p.mpc_options), rng),
+                               out[f"ceiling {scenario}"])
     speed = {s: random_rows[s, "admm"]["step_ms_median"] for s in p.sources}
     fidelity_plot({s: v["react_corr_jac"] for s, v in inter.items()}, speed, dest / "interaction_vs_step_time.png")
     lines += ["## Interaction fidelity against step time", "", "![interaction](interaction_vs_step_time.png)", ""]

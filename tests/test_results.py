@@ -147,6 +147,14 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
     (w,) = worlds["two_lane"]
     shown = cell(md, "Table II: two_lane", "cv", "ADMM", header.index("ceiling t_merge steps [95% CI]"))
     assert shown == (f"{float(w['ceiling_t_merge']):.1f}" if float(w["ceiling_courteous"]) else "-")
+    table2 = planner[planner["params.out_dir"].str.startswith(str(work / "planner" / "two_lane"))]  # not the showcase
+    for mpc, method in [("paper", "admm"), ("paper", "nnmpc"), ("courteous", "admm")]:  # an mpc option's rows: ADMM alone
+        r = table2[(table2["params.gradients"] == "cv") & (table2["params.mpc"] == mpc) & (table2["params.method"] == method)]
+        assert len(r) == 1
+        (e,) = episodes_csv(r["params.out_dir"].iloc[0], method)
+        name = "cv" if mpc == "paper" else "cv courteous"
+        assert numbers(cell(md, "Table II: two_lane", name, method.upper(), 3)) == pytest.approx(rate_cell([e["courteous"]]),
+                                                                                                abs=0.051)
 
 
 def test_a_planner_beats_the_ceiling_with_a_courteous_merge_it_missed_or_made_later():
