@@ -112,12 +112,14 @@ def test_per_scenario_rho_bound_matches_lemma3_and_theorem1_computed_here(studen
     scenarios = scenario_configs(cert["scenarios"])
     out = certificate.per_scenario(student.weights, student.s, glob, cert["region"], scenarios,
                                    cert["planner"], cert["cost"], cert["T_p"], cert["lambda_s"])
-    assert set(out) == {"two_lane", "three_lane", "random"}
+    assert set(out) == {"two_lane", "three_lane", "random", "dense"}
     two, three = out["two_lane"], out["three_lane"]
     assert two["region"]["rel_y"] == [-5.0, 5.0] and three["region"]["rel_y"] == [-9.0, 9.0]  # 4 m lanes, 1 m margin
     assert two["L"] <= three["L"] and two["rho_bound"] <= three["rho_bound"]
     assert out["random"]["v"] == 6.5  # the fastest ego start (platoon 5.5 m/s, ego 1 m/s above): the smallest sigma_min(C)
     assert out["random"]["rho_bound"] > three["rho_bound"]  # same region and road as three_lane, faster
+    dense = out["dense"]  # two lanes as two_lane, the random merges' starts
+    assert dense["region"] == two["region"] and dense["v"] == 6.5 and dense["rho_bound"] > two["rho_bound"]
     params = instantiate(scenarios["two_lane"]["params"])  # the bicycle as the planner builds it for two_lane
     t_p, dt, v, cost = cert["T_p"], params.dt, 5.0, cert["cost"]
     x_max, y_max = 10.0 * t_p * dt, 4.0 + 2 * 1.0
