@@ -148,12 +148,10 @@ def build_plan(cfg, work: Path):
             f"sources=[{','.join(sources)}]", *p.interaction])
         plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
     check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
-    runs = [("dense", s, p.dense_episodes, []) for s in p.sources] + \
-        [("dense", s, p.dense_episodes, [f"mpc={m}", "method=admm"]) for m in p.mpc_options for s in p.sources] + \
+    options = mpc_overrides(p.mpc_options)
+    runs = [("dense", s, p.dense_episodes, extra) for extra in options for s in p.sources] + \
         [("random", s, p.episodes, []) for s in p.sources] + \
-        [(sc, s, p.table2_episodes, extra) for sc in p.scenarios for extra in ([], *([f"mpc={m}", "method=admm"]
-                                                                                for m in p.mpc_options))
-         for s in p.table2_sources]
+        [(sc, s, p.table2_episodes, extra) for sc in p.scenarios for extra in options for s in p.table2_sources]
     for scenario, source, episodes, extra in runs:
         for k in p.training_seeds if source in TRAINED else [None]:
             row = label(source, extra)
@@ -184,9 +182,14 @@ def label(source: str, extra: list) -> str:
     return " ".join([source, *mpc])
 
 
+def mpc_overrides(options) -> list[list[str]]:
+    """The planner overrides of each kind of row: none (the paper's step), then each conf/mpc/ option, ADMM alone."""
+    return [[], *([f"mpc={m}", "method=admm"] for m in options)]
+
+
 def with_options(sources, options) -> list[str]:
     """Row names of sources with the paper's step, then with each conf/mpc/ option ("student courteous")."""
-    return [*sources, *(label(s, [f"mpc={m}"]) for m in options for s in sources)]
+    return [label(s, extra) for extra in mpc_overrides(options) for s in sources]
 
 
 def methods(folder: Path) -> list[str]:
