@@ -30,6 +30,7 @@ from pathlib import Path
 
 import hydra
 import numpy as np
+import pandas as pd
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
@@ -37,6 +38,7 @@ from bench import breakdown, ceiling
 from bench.branches import heldout_seeds
 from core import stats, validate
 from core.jobs import CONF_DIR, UserError, console, guarded, job_config, mlflow_run, writable
+from planner import compare
 from planner.batch import progress
 from planner.gradients import available, reads_models
 from surrogate.evaluate import ENDS, metric
@@ -369,9 +371,9 @@ def braking_plot(values: dict, b_safe: float, b_max: float, path: Path):
     plt.close(fig)
 
 
-def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) -> list[str]:
+def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) -> tuple[list[str], dict]:
     """The headline: the dense batch beside the ceiling's searches on the same worlds, the braking figure, the per-world
-    check that no planner beat the ceiling (logged too), and the ceiling's calibration table."""
+    check that no planner beat the ceiling (logged too), and the ceiling's calibration table; with the headline's rows."""
     p = cfg.results_preset
     worlds = read_ceiling(work, "dense")
     labels = with_options(p.sources, p.mpc_options)
@@ -423,30 +425,29 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
                        "ceiling t_merge steps [95% CI]", "held in lane: largest braking (m/s^2)"],
                       [[s, f"{r['worlds']:.0f}", pct(r, "ceiling_courteous"), pct(r, "never_yield_courteous"),
                         ci(r, "ceiling_t_merge"), fmt(r["held_b_imposed_max"])] for s, r in calibration])
-    return lines
+    return lines, rows
 
 
-def fidelity_plot(inter: dict, speed: dict, path: Path):
-    """Interaction fidelity of each gradient source (react_corr_jac, mean and 95% interval over trainings) against its
-    median MPC step time on the random batches (ms)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    for i, (source, (v, lo, hi)) in enumerate(inter.items()):
-        if source in speed and np.isfinite(v):
-            err = [[v - lo], [hi - v]] if hi > lo else None
-            ax.errorbar(speed[source], v, yerr=err, fmt="os^Dv"[i % 5], ms=8, capsize=4, label=source, color=f"C{i}")
-    ax.set(xscale="log", xlabel="median MPC step, ADMM, random merges (ms)", ylim=(-1.05, 1.05),
-           ylabel="react_corr_jac (first-order response vs true)", title="interaction fidelity vs step time")
-    ax.axvline(200, color="tab:red", ls=":", lw=1, label="real time (0.2 s)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def accuracy_plot(dense: dict, gradients: dict, inter: dict, options, path: Path):
+    """compare's figure (planner.compare.plot) from the report's own figures: per dense ADMM row, the gradient error of its
+    source along ramps (the baselines as lines), its courteous-merge rate and its source's react_corr_jac, against the
+    row's median MPC step (ms) on the dense worlds."""
+    names = {v: k for k, v in GRADIENT_ROWS.items()}  # a source's own row, or the baseline it is (cv)
+    row_of = lambda source: source if source in GRADIENT_ROWS else names.get(f"_{source}")
+    source_of = {s: s for s, _ in dense} | {f"{s} {o}": s for s, _ in dense for o in options}
+    base = {f"ramp_grad_rel_err{suffix}": gradients[names[suffix]]["ramp_grad_rel_err"][0] for suffix in ("_cv", "_mean")}
+    rows = []
+    for (label, method), r in dense.items():
+        if method != "admm":
+            continue
+        source = source_of[label]
+        grad = gradients.get(row_of(source), {}).get("ramp_grad_rel_err", (np.nan,) * 3)
+        rows.append({"gradients": label, "method": method, "step_ms_median": r["step_ms_median"],
+                     "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],
+                     **dict(zip((f"ramp_grad_rel_err{e}" for e in ENDS), grad)), **base,
+                     "react_corr_jac": inter.get(source, {}).get("react_corr_jac", (np.nan,))[0],
+                     "n_episodes": r["episodes"], "n_runs": r["trainings"]})
+    compare.plot(pd.DataFrame(rows), path)
 
 
 def command_line(p) -> str:
@@ -515,9 +516,10 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
                   f"the ceiling's t_merge from `ceiling scenario={scenario}` on the same worlds.", ""]
         lines += outcome_table(batch_rows(cfg, batches, scenario, with_options(p.table2_sources, p.mpc_options), rng),
                                out[f"ceiling {scenario}"])
-    speed = {s: random_rows[s, "admm"]["step_ms_median"] for s in p.sources}
-    fidelity_plot({s: v["react_corr_jac"] for s, v in inter.items()}, speed, dest / "interaction_vs_step_time.png")
-    lines += ["## Interaction fidelity against step time", "", "![interaction](interaction_vs_step_time.png)", ""]
+    lines += ["## Accuracy against speed", "", "Per ADMM row of the dense headline, against its median MPC step on those "
+              "worlds: its gradient source's error of d b_i/dZ along ramps (the Gradients table; the baselines as lines), its "
+              "courteous-merge rate, its source's first-order interaction fidelity (react_corr_jac). `compare` draws the "
+              "same figure from the MLflow runs.", "", "![accuracy against speed](accuracy_vs_speed.png)", ""]
     if "bench step time" in out:
         b = out["bench step time"]
         names = [k[: -len("_ms_median")] for k in b if k.endswith("_ms_median")]
@@ -539,7 +541,9 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
               "![snapshots](snapshots_admm.png) ![animation](merge_admm.gif)", "",
               "![snapshots](snapshots_nnmpc.png) ![animation](merge_nnmpc.gif)", ""]
     # the headline leads the report; its bootstrap draws follow the others' so that their intervals stay as they were
-    lines = head + dense_section(cfg, out, batches, work, dest, rng) + lines
+    dense_lines, dense_rows = dense_section(cfg, out, batches, work, dest, rng)
+    accuracy_plot(dense_rows, rows, inter, p.mpc_options, dest / "accuracy_vs_speed.png")
+    lines = head + dense_lines + lines
     path = dest / "README-results.md"
     path.write_text("\n".join(lines))
     return path

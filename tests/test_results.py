@@ -64,7 +64,7 @@ def tiny(tmp_path_factory):
 
 def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
     out, work, md = tiny
-    for f in ("b_imposed.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "interaction_vs_step_time.png",
+    for f in ("b_imposed.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "accuracy_vs_speed.png",
               "snapshots_admm.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG" and f in md
     assert (out / "merge_admm.gif").read_bytes()[:3] == b"GIF"
