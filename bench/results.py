@@ -428,21 +428,20 @@ def dense_section(cfg, out: dict, batches: dict, work: Path, dest: Path, rng) ->
     return lines, rows
 
 
-def accuracy_plot(dense: dict, gradients: dict, inter: dict, options, path: Path):
+def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
     """compare's figure (planner.compare.plot) from the report's own figures: per dense ADMM row, the gradient error of its
     source along ramps (the baselines as lines), its courteous-merge rate and its source's react_corr_jac, against the
     row's median MPC step (ms) on the dense worlds."""
     names = {v: k for k, v in GRADIENT_ROWS.items()}  # a source's own row, or the baseline it is (cv)
     row_of = lambda source: source if source in GRADIENT_ROWS else names.get(f"_{source}")
-    source_of = {s: s for s, _ in dense} | {f"{s} {o}": s for s, _ in dense for o in options}
     base = {f"ramp_grad_rel_err{suffix}": gradients[names[suffix]]["ramp_grad_rel_err"][0] for suffix in ("_cv", "_mean")}
     rows = []
-    for (label, method), r in dense.items():
+    for (name, method), r in dense.items():
         if method != "admm":
             continue
-        source = source_of[label]
+        source = name.split(" ", 1)[0]  # the row name's gradient source (label)
         grad = gradients.get(row_of(source), {}).get("ramp_grad_rel_err", (np.nan,) * 3)
-        rows.append({"gradients": label, "method": method, "step_ms_median": r["step_ms_median"],
+        rows.append({"gradients": name, "method": method, "step_ms_median": r["step_ms_median"],
                      "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],
                      **dict(zip((f"ramp_grad_rel_err{e}" for e in ENDS), grad)), **base,
                      "react_corr_jac": inter.get(source, {}).get("react_corr_jac", (np.nan,))[0],
@@ -542,7 +541,7 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
               "![snapshots](snapshots_nnmpc.png) ![animation](merge_nnmpc.gif)", ""]
     # the headline leads the report; its bootstrap draws follow the others' so that their intervals stay as they were
     dense_lines, dense_rows = dense_section(cfg, out, batches, work, dest, rng)
-    accuracy_plot(dense_rows, rows, inter, p.mpc_options, dest / "accuracy_vs_speed.png")
+    accuracy_plot(dense_rows, rows, inter, dest / "accuracy_vs_speed.png")
     lines = head + dense_lines + lines
     path = dest / "README-results.md"
     path.write_text("\n".join(lines))
