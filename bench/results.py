@@ -432,15 +432,15 @@ def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
     """compare's figure (planner.compare.plot) from the report's own figures: per dense ADMM row, the gradient error of its
     source along ramps (the baselines as lines), its courteous-merge rate and its source's react_corr_jac, against the
     row's median MPC step (ms) on the dense worlds."""
-    names = {v: k for k, v in GRADIENT_ROWS.items()}  # a source's own row, or the baseline it is (cv)
-    row_of = lambda source: source if source in GRADIENT_ROWS else names.get(f"_{source}")
+    names = {v: k for k, v in GRADIENT_ROWS.items()}  # a surrogate-job suffix -> its row of the Gradients table
     base = {f"ramp_grad_rel_err{suffix}": gradients[names[suffix]]["ramp_grad_rel_err"][0] for suffix in ("_cv", "_mean")}
     rows = []
     for (name, method), r in dense.items():
         if method != "admm":
             continue
         source = name.split(" ", 1)[0]  # the row name's gradient source (label)
-        grad = gradients.get(row_of(source), {}).get("ramp_grad_rel_err", (np.nan,) * 3)
+        suffix = compare.SOURCE_SUFFIX.get(source)
+        grad = (np.nan,) * 3 if suffix is None else gradients[names[suffix]]["ramp_grad_rel_err"]
         rows.append({"gradients": name, "method": method, "step_ms_median": r["step_ms_median"],
                      "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],
                      **dict(zip((f"ramp_grad_rel_err{e}" for e in ENDS), grad)), **base,

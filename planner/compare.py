@@ -35,6 +35,8 @@ GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err",
 # column: (score, end) of d b_i/dZ against teacher autodiff on the surrogate job's held-out planning states, along single
 # coordinates of Z and along ramps, plans the ego can drive (surrogate.evaluate)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
+SOURCE_SUFFIX = {"surrogate": "", "student": "_student", "cv": "_cv"}  # a gradient source's d b_i/dZ scores in the surrogate
+# job's metrics (grad_rel_err, grad_rel_err_student, ...); the other sources are not scored there
 BASELINES = {"cv": "_cv", "mean Jacobian": "_mean"}  # the trivial gradient sources every row is shown against
 MEANS = ("t_merge", "C_max", "admm_iters_mean", "fallbacks", "b_imposed_max")  # episode-weighted over the pooled runs
 INTERACTION = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac"]
@@ -75,7 +77,7 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     scored = latest(surrogate_runs, "source", "teacher")  # the surrogate job scores each source's d b_i/dZ on its states
     if gradients == "surrogate":
         row.update(metrics_of(scored, ("jac_rel_err",)))
-    suffix = {"surrogate": "", "student": "_student", "cv": "_cv"}.get(gradients)
+    suffix = SOURCE_SUFFIX.get(gradients)
     if suffix is not None:
         row.update(gradient_error(scored, suffix))
     for s in BASELINES.values():
