@@ -477,16 +477,19 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
     lines += markdown(["predictor", "ADE 1-step (mm)", "ADE rollout (mm)", "FDE rollout (mm)", "ADE rollout, yield episodes (mm)"],
                       [[m, *(mm(acc[m][k]) for k in ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_rollout_m_yield"))]
                        for m in MODELS])
-    grads = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err", "ramp_grad_rel_err", "ramp_react_rel_err")
+    grads = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err", "react_wrel_err", "ramp_grad_rel_err",
+             "ramp_react_rel_err")
     rows = {name: gradient_row([out[f"surrogate seed {s}"] for s in seeds], suffix, grads) for name, suffix in GRADIENT_ROWS.items()}
     rows["student"]["jac_rel_err"] = over_trainings(d["student"], ("jac_rel_err",))["jac_rel_err"]  # its distill run's
     lines += ["## Gradients", "", "Against teacher autodiff on held-out planning states, beside the trivial baselines: "
               "constant velocity's Jacobian and the training set's mean Jacobian. The reaction part is the others' "
-              "d p_i / dZ, where predicting no reaction scores 1. `along ramps`: the same derivatives along plan changes "
+              "d p_i / dZ, where predicting no reaction scores 1; `weighted` pools the states' errors and reactions (sum of "
+              "error norms over sum of reaction norms), so that states where the plan barely moves anyone do not dominate. "
+              "`along ramps`: the same derivatives along plan changes "
               "the ego can drive (a change of speed from one step on), the ones the planner's steps take. Intervals: "
               "over trainings; with one training, over the surrogate job's planning states.", ""]
     lines += markdown(["source", "local Jacobian rel. error", "d b_i/dZ cosine", "d b_i/dZ rel. error", "reaction rel. error",
-                       "d b_i/dZ rel. error along ramps", "reaction rel. error along ramps"],
+                       "reaction rel. error, weighted", "d b_i/dZ rel. error along ramps", "reaction rel. error along ramps"],
                       [[name, *(fmt(r[k][0], ".3f", *r[k][1:]) for k in grads)] for name, r in rows.items()])
     inter_runs = {}
     for k in seeds:

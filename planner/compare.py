@@ -30,10 +30,12 @@ from surrogate.evaluate import metric
 log = logging.getLogger(__name__)
 GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err", ""), "grad_rel_err_lo": ("grad_rel_err", "_lo"),
             "grad_rel_err_hi": ("grad_rel_err", "_hi"), "react_rel_err": ("react_rel_err", ""),
+            "react_wrel_err": ("react_wrel_err", ""),
             "ramp_grad_rel_err": ("ramp_grad_rel_err", ""), "ramp_grad_rel_err_lo": ("ramp_grad_rel_err", "_lo"),
             "ramp_grad_rel_err_hi": ("ramp_grad_rel_err", "_hi"), "ramp_react_rel_err": ("ramp_react_rel_err", "")}
 # column: (score, end) of d b_i/dZ against teacher autodiff on the surrogate job's held-out planning states, along single
-# coordinates of Z and along ramps, plans the ego can drive (surrogate.evaluate)
+# coordinates of Z and along ramps, plans the ego can drive; react_wrel_err weighs each state by its reaction's size
+# (surrogate.evaluate)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
 SOURCE_SUFFIX = {"surrogate": "", "student": "_student", "cv": "_cv"}  # a gradient source's d b_i/dZ scores in the surrogate
 # job's metrics (grad_rel_err, grad_rel_err_student, ...); the other sources are not scored there
@@ -82,7 +84,7 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
         row.update(gradient_error(scored, suffix))
     for s in BASELINES.values():
         row.update({metric(k, s): v for k, v in gradient_error(scored, s).items()
-                    if k in ("grad_rel_err", "react_rel_err", "ramp_grad_rel_err", "ramp_react_rel_err")})
+                    if k in ("grad_rel_err", "react_rel_err", "react_wrel_err", "ramp_grad_rel_err", "ramp_react_rel_err")})
     row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
 
@@ -209,7 +211,7 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
 
 SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi", "merged_rate", "collision_rate", "t_merge",
          "b_imposed_max", "d_min_m", "fallbacks", "step_ms_median", "ade_rollout_m", "grad_rel_err", "grad_rel_err_cv",
-         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "ramp_grad_rel_err", "ramp_grad_rel_err_cv",
+         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "react_wrel_err", "react_wrel_err_mean", "ramp_grad_rel_err", "ramp_grad_rel_err_cv",
          "ramp_grad_rel_err_mean", "ramp_react_rel_err", "ramp_react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
 
 

@@ -78,14 +78,26 @@ def relative(a, b):
     return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300))
 
 
+def weighted(errors, truths, resamples=1000, seed=0):
+    """(sum errors / sum truths, lo, hi): the states' relative errors weighted by the size of the truth, with the 95%
+    percentile-bootstrap interval over states. Unlike the mean of per-state ratios it is not dominated by states where
+    the truth is nearly zero (a reaction of a car the plan does not touch)."""
+    pairs = [np.array([[e, t]]) for e, t in zip(errors, truths)]
+    ratio = lambda a: a[:, 0].sum() / max(a[:, 1].sum(), 1e-300)
+    lo, hi = stats.bootstrap(pairs, ratio, resamples, seed, within=False)
+    return ratio(np.concatenate(pairs)), float(lo), float(hi)
+
+
 def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R):
     """Per Jacobian source name: grad_cosine, grad_rel_err, react_cosine, react_rel_err and their ramp_* twins (the
-    module's doc), each (mean, lo, hi) over the states (Student-t 95% interval).
+    module's doc), each (mean, lo, hi) over the states (Student-t 95% interval); and each *_wrel_err, the relative error
+    weighted by the truth's size (`weighted`).
 
     windows (n, T_p, T_obs, SLOTS, 2), nexts (n, T_p, SLOTS, 2) and the exact J (n, T_p, SLOTS*2, T_obs*SLOTS*2) are the source's on the
     windows its rollout visits; each of J_hats {name: (n, T_p, SLOTS*2, T_obs*SLOTS*2)} replaces J in the same rollout.
     """
     scores = {name: {} for name in J_hats}
+    norms = {name: {} for name in J_hats}  # key: [(||error||, ||truth||) per state]
     for i, (history, ego_future) in enumerate(zip(histories, ego_futures)):
         truth = views(*dZ(replay(windows[i], nexts[i], J[i]), history, ego_future, R))
         for name, J_hat in J_hats.items():
@@ -93,5 +105,8 @@ def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R
             for key, exact in truth.items():
                 scores[name].setdefault(f"{key}_cosine", []).append(cosine(hat[key], exact))
                 scores[name].setdefault(f"{key}_rel_err", []).append(relative(hat[key], exact))
-    return {name: {k: stats.mean_ci(v) for k, v in s.items()} for name, s in scores.items()}
-
+                norms[name].setdefault(key, []).append((np.linalg.norm(hat[key] - exact), np.linalg.norm(exact)))
+    out = {name: {k: stats.mean_ci(v) for k, v in s.items()} for name, s in scores.items()}
+    for name, per_key in norms.items():
+        out[name].update({f"{key}_wrel_err": weighted(*zip(*pairs)) for key, pairs in per_key.items()})
+    return out

@@ -4,7 +4,9 @@ Structure it exploits: a predictor that moves with the traffic (phi(window + c) 
 has a Jacobian that depends on relative positions only, so the network reads the window relative to the ego's last
 position, in velocities and accelerations (plus, optionally, absolute coordinates such as y, if lanes matter). It predicts the
 standardised deviation from the training mean Jacobian, so the large constant-velocity part is exact by construction
-and its capacity goes to the interaction terms.
+and its capacity goes to the interaction terms. It reads its features clipped to the box its training data spanned:
+outside it an MLP extrapolates without bound, and a chain of T_p such Jacobians multiplies the error (a car changing
+lanes in `three_lane`, never seen in the dense world, gave reactions of 10^6 m/m and froze the planner).
 """
 import numpy as np
 import torch
@@ -26,8 +28,9 @@ class JacobianNet(nn.Module):
             layers += [nn.Linear(width, hidden), nn.SiLU()]
             width = hidden
         self.net = nn.Sequential(*layers, nn.Linear(width, n_out))
-        for name, size in (("x_mean", n_in), ("x_std", n_in), ("J_mean", n_out), ("J_std", n_out)):
-            self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
+        for name, size, fill in (("x_mean", n_in, 0.0), ("x_std", n_in, 1.0), ("x_lo", n_in, -torch.inf),
+                                 ("x_hi", n_in, torch.inf), ("J_mean", n_out, 0.0), ("J_std", n_out, 1.0)):
+            self.register_buffer(name, torch.full((size,), fill))
 
     def features(self, window):
         """(B, n_in): kinematic coordinates of the window, the basis the predictors themselves read.
@@ -43,8 +46,10 @@ class JacobianNet(nn.Module):
         return torch.cat(parts, dim=1)
 
     def standardised(self, window):
-        """Network output: (J - J_mean) / J_std, flattened (B, SLOTS*2*T_obs*SLOTS*2)."""
-        return self.net((self.features(window) - self.x_mean) / self.x_std)
+        """Network output: (J - J_mean) / J_std, flattened (B, SLOTS*2*T_obs*SLOTS*2), of the features clipped to the
+        training box [x_lo, x_hi]."""
+        x = torch.minimum(torch.maximum(self.features(window), self.x_lo), self.x_hi)
+        return self.net((x - self.x_mean) / self.x_std)
 
     def forward(self, window):
         """J (B, SLOTS*2, T_obs*SLOTS*2), m/m."""
@@ -52,11 +57,14 @@ class JacobianNet(nn.Module):
         return flat.view(-1, self.M * 2, self.T_obs * self.M * 2)
 
     def fit_normalisation(self, windows, J, floor=1e-3):
-        """Set the feature and target statistics from training windows (B, T_obs, SLOTS, 2) and Jacobians (B, SLOTS*2, T_obs*SLOTS*2)."""
+        """Set the feature statistics and box and the target statistics from training windows (B, T_obs, SLOTS, 2) and
+        Jacobians (B, SLOTS*2, T_obs*SLOTS*2)."""
         x = self.features(torch.as_tensor(np.asarray(windows), dtype=torch.float32))
         J = torch.as_tensor(np.asarray(J).reshape(len(J), -1), dtype=torch.float32)
         self.x_mean.copy_(x.mean(0))
         self.x_std.copy_(x.std(0).clamp_min(floor))
+        self.x_lo.copy_(x.min(0).values)
+        self.x_hi.copy_(x.max(0).values)
         self.J_mean.copy_(J.mean(0))
         self.J_std.copy_(J.std(0).clamp_min(floor))
 

@@ -174,6 +174,7 @@ def test_the_baselines_and_the_reaction_split_on_a_constructed_state():
     windows, nexts, J = map(np.stack, (windows, nexts, J))
     scores = gradient_accuracy(windows, nexts, J, {"cv": np.broadcast_to(blind, J.shape), "exact": J}, histories, egos, R)
     assert scores["cv"]["react_rel_err"][0] == pytest.approx(1.0) and scores["exact"]["react_rel_err"][0] == pytest.approx(0.0)
+    assert scores["cv"]["react_wrel_err"] == pytest.approx((1.0, 1.0, 1.0)) and scores["exact"]["react_wrel_err"][0] == 0.0
     shares = []
     for h, e in zip(histories, egos):
         values, grads = rollout_jacobian(lambda w: ((A @ w.reshape(-1)).reshape(1, SLOTS, 2), A[None]), h, e)
@@ -193,6 +194,17 @@ def test_the_baselines_and_the_reaction_split_on_a_constructed_state():
     assert np.allclose(scores["cv"]["grad_rel_err"][1:], [np.mean(shares) - half, np.mean(shares) + half])
 
 
+def test_the_weighted_error_pools_states_by_the_size_of_their_truth():
+    """Two states, a tiny reaction missed by 5x and a large one by 10%: the mean of ratios says 2.55, the weighted error
+    (1.5 / 10.1) says what the error is where the reaction is; its interval, resampling the states, spans both states'
+    ratios."""
+    from surrogate.evaluate import weighted
+
+    value, lo, hi = weighted([0.5, 1.0], [0.1, 10.0])
+    assert value == pytest.approx(1.5 / 10.1)
+    assert lo == pytest.approx(0.1) and hi == pytest.approx(5.0)  # all-large and all-tiny resamples
+
+
 def test_a_surrogate_trained_without_interaction_scores_at_the_no_reaction_baseline(tmp_path, tiny_dataset):
     """Trained on a source whose others never react (so its mean Jacobian has no reaction either), then scored against
     the reacting source on its planning states: its reaction error is the baseline's 1, not better."""
@@ -208,6 +220,7 @@ def test_a_surrogate_trained_without_interaction_scores_at_the_no_reaction_basel
     scores = gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J), {"blind": per_state(n, J_hat)},
                                history, ego_future, 3.95)
     assert scores["blind"]["react_rel_err"][1] > 0.9  # its interval's lower end: no better than predicting no reaction
+    assert scores["blind"]["react_wrel_err"][1] > 0.9
 
 
 def linear_rollout(A, h, e):
@@ -236,9 +249,11 @@ def test_a_derivative_along_ramps_is_the_rollouts_response_to_a_change_of_speed(
             assert np.allclose(linear_rollout(A, h, changed)[0] - values, along_ramps(grads)[..., k, axis], atol=1e-9)
 
 
-def test_the_composed_reaction_loss_is_zero_at_the_source_and_positive_off_it():
+@pytest.mark.parametrize("per_state, coords", [(False, False), (True, False), (True, True)])
+def test_the_composed_reaction_loss_is_zero_at_the_source_and_positive_off_it(per_state, coords):
     """The training loss on whole planning states: the network's Jacobians composed over the rollout and compared along
-    ramps with the source's; exactly the source's Jacobians score 0, a perturbed copy more."""
+    ramps (and single coordinates) with the source's; exactly the source's Jacobians score 0, a perturbed copy more, and
+    with per_state every state's relative error counts alike."""
     from surrogate.network import JacobianNet
     from surrogate.training import SurrogateModule, reaction
 
@@ -252,13 +267,20 @@ def test_the_composed_reaction_loss_is_zero_at_the_source_and_positive_off_it():
             return torch.as_tensor(self.J_now, dtype=torch.float32)
 
     net = Exact(T_OBS, SLOTS, hidden=4, depth=1, absolute="")
-    module = SurrogateModule(net, lr=1e-3, weight_decay=0.0, composed=1.0)
+    module = SurrogateModule(net, lr=1e-3, weight_decay=0.0, composed=1.0, per_state=per_state, coords=coords)
     windows = torch.as_tensor(W.reshape(4, 8, T_OBS, SLOTS, 2), dtype=torch.float32)
     target = torch.as_tensor(reaction(J), dtype=torch.float32)
     net.J_now = J.reshape(32, SLOTS * 2, -1)
     assert float(module.reaction_loss(windows, target)) < 1e-8
     net.J_now = net.J_now * 1.1
     assert float(module.reaction_loss(windows, target)) > 1e-3
+    if per_state:  # the mean of each state's own loss, whatever the size of its reaction
+        each = []
+        for i in range(4):
+            net.J_now = J[i].reshape(8, SLOTS * 2, -1) * 1.1
+            each.append(float(module.reaction_loss(windows[i:i + 1], target[i:i + 1])))
+        net.J_now = J.reshape(32, SLOTS * 2, -1) * 1.1
+        assert float(module.reaction_loss(windows, target)) == pytest.approx(np.mean(each), rel=1e-5)
 
 
 def recorded(folder, n_files, seed=0, **changes):
@@ -300,3 +322,30 @@ def test_bad_iterates_are_refused_naming_the_file(tmp_path, tiny_dataset, change
 
         load_iterates(iterates, T_OBS, SLOTS, 8)
     assert not (tmp_path / "surrogate.onnx").exists()
+
+
+def test_outside_its_training_box_the_surrogate_reads_the_nearest_state_it_knows():
+    """Fitted on windows where every car keeps its lane, the network gives a window where car 3 changes lanes at 1 m
+    per step the same Jacobian as one where it does so at 10 (its features clipped to the training box), while an
+    unclipped copy extrapolates; inside the box both agree."""
+    from surrogate.network import JacobianNet
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    t = np.arange(T_OBS)[None, :, None]
+    x = rng.uniform(0.0, 50.0, (256, 1, SLOTS)) + rng.uniform(0.8, 1.2, (256, 1, SLOTS)) * t  # m, about 1 m per step
+    y = np.broadcast_to(rng.choice([0.0, 4.0], (256, 1, SLOTS)), x.shape) + rng.normal(0.0, 0.01, x.shape)
+    windows = np.stack([x, y], axis=-1)
+    net = JacobianNet(T_OBS, SLOTS, 16, 2, "")
+    net.fit_normalisation(windows, rng.normal(0.0, 1.0, (256, SLOTS * 2, T_OBS * SLOTS * 2)))
+    free = JacobianNet(T_OBS, SLOTS, 16, 2, "")
+    free.load_state_dict(net.state_dict())
+    free.x_lo.fill_(-torch.inf), free.x_hi.fill_(torch.inf)
+    lane_change = [windows[:1].copy() for _ in range(2)]
+    for w, speed in zip(lane_change, (1.0, 10.0)):
+        w[0, :, 3, 1] += speed * np.arange(T_OBS)
+    inside, slow, fast = (torch.as_tensor(w, dtype=torch.float32) for w in (windows[:8], *lane_change))
+    with torch.no_grad():
+        assert torch.allclose(net(inside), free(inside))
+        assert (net(slow) - net(fast)).abs().max() < 1e-3  # float32 rounding of the lane change's accelerations
+        assert (free(slow) - free(fast)).abs().max() > 1.0
