@@ -57,7 +57,7 @@ ceiling: $(STAMP)
 
 # Every table and figure of the README's Results section from scratch (dataset, 3 trainings per model, held-out batches of
 # every gradient source, Table II scenarios, interaction benchmark, step-time bench): results/README-results.md and
-# results/*.png. About 2.5 hours on 2 cores, estimated (one training seed took 61 min); `make results-full` is the
+# results/*.png. About 2.5 hours on 2 cores, estimated (one training seed took 49-61 min); `make results-full` is the
 # preset for a bigger machine (or a Ray cluster: `results results_preset=full backend=ray ray.address=auto`).
 results: $(STAMP)
 	$(BIN)/results results_preset=small
