@@ -171,8 +171,10 @@ def run(cfg: DictConfig) -> dict:
         J_cv = ConstantVelocity().phi_jac(W)[1]
         with torch.no_grad():
             with_torch = net(torch.as_tensor(W, dtype=torch.float32)).double().numpy()
+            outside = float(net.outside(torch.as_tensor(W, dtype=torch.float32)).double().mean())
         metrics = {"jac_rel_err": rel_err(J_hat, J), "jac_rel_err_mean": rel_err(J_mean, J),
-                   "jac_rel_err_cv": rel_err(J_cv, J), "onnx_max_abs_err": float(np.abs(J_hat - with_torch).max())}
+                   "jac_rel_err_cv": rel_err(J_cv, J), "onnx_max_abs_err": float(np.abs(J_hat - with_torch).max()),
+                   "outside_box_share": outside}
 
         R = cfg.paper.safety.r + cfg.paper.safety.r_i + cfg.paper.safety.eps
         n = len(history)
@@ -199,7 +201,8 @@ def run(cfg: DictConfig) -> dict:
              f" local J {metrics['jac_rel_err']:.4f} ({metrics['jac_rel_err_cv']:.4f}, {metrics['jac_rel_err_mean']:.4f}); "
              + (f"the student's ramp_grad_rel_err {metrics['ramp_grad_rel_err_student']:.3f}, ramp_react_rel_err "
                 f"{metrics['ramp_react_rel_err_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +
-             f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff")
+             f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff; "
+             f"{100 * metrics['outside_box_share']:.1f}% of the test windows outside the training box")
     return metrics
 
 

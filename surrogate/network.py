@@ -51,6 +51,11 @@ class JacobianNet(nn.Module):
         x = torch.minimum(torch.maximum(self.features(window), self.x_lo), self.x_hi)
         return self.net((x - self.x_mean) / self.x_std)
 
+    def outside(self, window):
+        """(B,) bool: windows with a feature outside the training box, where the network answers for the box's edge."""
+        x = self.features(window)
+        return ((x < self.x_lo) | (x > self.x_hi)).any(dim=1)
+
     def forward(self, window):
         """J (B, SLOTS*2, T_obs*SLOTS*2), m/m."""
         flat = self.J_mean + self.J_std * self.standardised(window)

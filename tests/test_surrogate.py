@@ -294,7 +294,7 @@ def test_planner_iterates_train_the_surrogate_and_hold_out_its_test(tmp_path, ti
                     "data.test_iterate_episodes=1", "module.composed=1.0", "trainer.max_epochs=3"))
     for key in ("ramp_grad_rel_err", "ramp_react_rel_err"):
         assert all(np.isfinite(m[f"{key}{s}"]) for s in ("", "_cv", "_mean"))
-    assert m["ramp_react_rel_err_cv"] == pytest.approx(1.0)
+    assert m["ramp_react_rel_err_cv"] == pytest.approx(1.0) and 0.0 <= m["outside_box_share"] <= 1.0
     assert m["n_test"] == 30 * 8  # test_plan_states drawn from the held-out episode
 
 
@@ -340,3 +340,4 @@ def test_outside_its_training_box_the_surrogate_reads_the_nearest_state_it_knows
         assert torch.allclose(net(inside), free(inside))
         assert (net(slow) - net(fast)).abs().max() < 1e-3  # float32 rounding of the lane change's accelerations
         assert (free(slow) - free(fast)).abs().max() > 1.0
+    assert not net.outside(inside).any() and net.outside(slow).all() and net.outside(fast).all()
