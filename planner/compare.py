@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from core import stats, validate
 from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, console, guarded, mlflow_run, open_experiment, options
 from planner.gradients import predictor_of
-from surrogate.evaluate import metric
+from surrogate.evaluate import HEADLINE, metric
 
 log = logging.getLogger(__name__)
 GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err", ""), "grad_rel_err_lo": ("grad_rel_err", "_lo"),
@@ -83,8 +83,7 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     if suffix is not None:
         row.update(gradient_error(scored, suffix))
     for s in BASELINES.values():
-        row.update({metric(k, s): v for k, v in gradient_error(scored, s).items()
-                    if k in ("grad_rel_err", "react_rel_err", "react_wrel_err", "ramp_grad_rel_err", "ramp_react_rel_err")})
+        row.update({metric(k, s): v for k, v in gradient_error(scored, s).items() if k in HEADLINE})
     row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
 

@@ -197,7 +197,7 @@ def run(cfg: DictConfig) -> dict:
     log.info(f"surrogate of {cfg.source} ({cfg.jacobian}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
              f"states ({'the planner iterates' if cfg.data.iterates else 'sampled'}), relative errors of the surrogate (cv, mean-J):"
              + "".join(f" {k} {metrics[k]:.3f} ({metrics[k + '_cv']:.3f}, {metrics[k + '_mean']:.3f});"
-                       for k in ("grad_rel_err", "react_rel_err", "react_wrel_err", "ramp_grad_rel_err", "ramp_react_rel_err")) +
+                       for k in evaluate.HEADLINE) +
              f" local J {metrics['jac_rel_err']:.4f} ({metrics['jac_rel_err_cv']:.4f}, {metrics['jac_rel_err_mean']:.4f}); "
              + (f"the student's ramp_grad_rel_err {metrics['ramp_grad_rel_err_student']:.3f}, ramp_react_rel_err "
                 f"{metrics['ramp_react_rel_err_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +

@@ -15,6 +15,8 @@ from core import stats
 from core.rollout import b_i_jacobian, rollout_jacobian
 
 ENDS = ("", "_lo", "_hi")  # a score's mean, then the ends of its 95% interval
+HEADLINE = ("grad_rel_err", "react_rel_err", "react_wrel_err", "ramp_grad_rel_err", "ramp_react_rel_err")  # the scores
+# reported for a source beside the same scores of the baselines (the job's log line, compare's baseline columns)
 
 
 def metric(key: str, source: str = "", end: str = "") -> str:
