@@ -485,9 +485,9 @@ def report(cfg, out: dict, batches: dict, work: Path, dest: Path) -> Path:
               "constant velocity's Jacobian and the training set's mean Jacobian. The reaction part is the others' "
               "d p_i / dZ, where predicting no reaction scores 1; `weighted` pools the states' errors and reactions (sum of "
               "error norms over sum of reaction norms), so that states where the plan barely moves anyone do not dominate. "
-              "`along ramps`: the same derivatives along plan changes "
-              "the ego can drive (a change of speed from one step on), the ones the planner's steps take. Intervals: "
-              "over trainings; with one training, over the surrogate job's planning states.", ""]
+              "`along ramps`: the same derivatives along plan changes the ego can drive (a change of speed from one step "
+              "on), the ones the planner's steps take. Intervals: over trainings; with one training, over the surrogate "
+              "job's planning states.", ""]
     lines += markdown(["source", "local Jacobian rel. error", "d b_i/dZ cosine", "d b_i/dZ rel. error", "reaction rel. error",
                        "reaction rel. error, weighted", "d b_i/dZ rel. error along ramps", "reaction rel. error along ramps"],
                       [[name, *(fmt(r[k][0], ".3f", *r[k][1:]) for k in grads)] for name, r in rows.items()])

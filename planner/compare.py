@@ -210,8 +210,8 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
 
 SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi", "merged_rate", "collision_rate", "t_merge",
          "b_imposed_max", "d_min_m", "fallbacks", "step_ms_median", "ade_rollout_m", "grad_rel_err", "grad_rel_err_cv",
-         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "react_wrel_err", "react_wrel_err_mean", "ramp_grad_rel_err", "ramp_grad_rel_err_cv",
-         "ramp_grad_rel_err_mean", "ramp_react_rel_err", "ramp_react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
+         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "react_wrel_err", "react_wrel_err_mean",
+         "ramp_grad_rel_err", "ramp_grad_rel_err_cv", "ramp_grad_rel_err_mean", "ramp_react_rel_err", "ramp_react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
 
 
 @guarded
