@@ -12,6 +12,9 @@ Accuracy columns belong to the row's predictor and gradient source: the latest `
 velocity: the `cv_*` metrics that run logs beside its own; the analytic predictor is not measured), the latest
 `surrogate` run for the surrogate's gradients, and the latest `interaction` run of the source (bench/interaction.py:
 react_* for its rollout response, react_*_jac for its first-order response).
+
+It prints a short table, the params that tell rows apart and the cells of SHORT (episodes, courteous-merge rate, t_merge,
+fallbacks, gradient error, step time), and writes every column to compare.csv.
 """
 import logging
 import os
@@ -208,10 +211,35 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
     return runs
 
 
-SHOWN = ["n_runs", "n_episodes", "courteous_rate", "courteous_lo", "courteous_hi", "merged_rate", "collision_rate", "t_merge",
-         "b_imposed_max", "d_min_m", "fallbacks", "step_ms_median", "ade_rollout_m", "grad_rel_err", "grad_rel_err_cv",
-         "grad_rel_err_mean", "react_rel_err", "react_rel_err_mean", "react_wrel_err", "react_wrel_err_mean",
-         "ramp_grad_rel_err", "ramp_grad_rel_err_cv", "ramp_grad_rel_err_mean", "ramp_react_rel_err", "ramp_react_rel_err_mean", "react_corr", "react_corr_jac", "runs"]
+def fmt(v, f=".2f", lo=None, hi=None) -> str:
+    """A cell: the value, with its interval in brackets when it has one wider than nothing; '-' for NaN."""
+    if v is None or not np.isfinite(v):
+        return "-"
+    if lo is None or not np.isfinite(lo) or hi - lo <= 0:
+        return f"{v:{f}}"
+    return f"{v:{f}} [{lo:{f}}, {hi:{f}}]"
+
+
+def gradient_cell(r: pd.Series) -> str:
+    """A row's gradient error against teacher autodiff with its interval: along ramps, or along single coordinates for
+    runs scored before the ramps."""
+    g = "ramp_grad_rel_err" if np.isfinite(r["ramp_grad_rel_err"]) else "grad_rel_err"
+    return fmt(r[g], ".3f", r[f"{g}_lo"], r[f"{g}_hi"])
+
+
+SHORT = {"episodes": lambda r: str(r["n_episodes"]),
+         "courteous % [95% CI]": lambda r: fmt(100 * r["courteous_rate"], ".1f", 100 * r["courteous_lo"], 100 * r["courteous_hi"]),
+         "t_merge": lambda r: fmt(r["t_merge"], ".1f"),
+         "fallbacks": lambda r: fmt(r["fallbacks"]),
+         "grad error": gradient_cell,
+         "step ms med/p95": lambda r: f"{fmt(r['step_ms_median'], '.1f')}/{fmt(r['step_ms_p95'], '.1f')}"}
+# the printed table's outcome columns (compare.csv has every column): what each row's source bought, at what speed;
+# t_merge in steps, fallbacks per episode, grad error: d b_i/dZ against teacher autodiff (gradient_cell)
+
+
+def short(df: pd.DataFrame, params) -> pd.DataFrame:
+    """The printed table: the row's `params`, then SHORT's cells."""
+    return pd.concat([df[params].astype(str), pd.DataFrame({c: df.apply(f, axis=1) for c, f in SHORT.items()})], axis=1)
 
 
 @guarded
@@ -234,11 +262,14 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     lead = [c for c in cfg.columns if c in df]
     # a param that follows from the `columns` ones (method.nnmpc.* with method) adds nothing to the printed table
     follows = lambda c: c not in lead and bool(lead) and df.groupby(lead, dropna=False)[c].nunique().max() <= 1
-    shown = [c for c in group_by if (df[c].nunique() > 1 and not follows(c)) or c in ("gradients", "method")] + SHOWN
-    same = {c: df[c].iloc[0] for c in group_by if c not in shown and df[c].nunique() == 1}
-    with pd.option_context("display.width", 250, "display.max_columns", 40, "display.precision", 3,
-                           "display.max_colwidth", 60):
-        log.info("every row: %s\n%s", ", ".join(f"{k}={v}" for k, v in same.items()), df[shown].to_string(index=False))
+    shown = [c for c in group_by if (df[c].nunique() > 1 and not follows(c)) or c in ("gradients", "method", "mpc")]
+    same = {c: df[c].iloc[0] for c in group_by if c not in shown and df[c].nunique() == 1 and df[c].iloc[0] != "-"}
+    g = "ramp_grad_rel_err" if df["ramp_grad_rel_err"].notna().any() else "grad_rel_err"
+    baselines = ", ".join(f"{name} {fmt(df[f'{g}{s}'].dropna().iloc[0], '.3f')}" for name, s in BASELINES.items()
+                          if df[f"{g}{s}"].notna().any())
+    log.info("every row: %s%s\n%s", ", ".join(f"{k}={v}" for k, v in same.items()),
+             f"; d b_i/dZ error of the baselines: {baselines}" if baselines else "",
+             short(df, shown).to_string(index=False))
     log.info("wrote %s (all columns) and %s", out / "compare.csv", out / "compare.png")
     return df
 

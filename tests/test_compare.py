@@ -5,6 +5,7 @@ import logging
 import mlflow
 import numpy as np
 import pytest
+from test_batch import wilson_by_roots
 
 from conftest import compose_cfg
 from planner.compare import run
@@ -84,3 +85,24 @@ def test_rows_split_by_setup_and_accuracy_follows_the_predictor(store):
     lo, hi = sur["merged_lo"], sur["merged_hi"]  # Wilson, 30 of 40: 0.5981 .. 0.8581
     assert lo == pytest.approx(0.5981, abs=1e-4) and hi == pytest.approx(0.8581, abs=1e-4)
     assert (store / "compare.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_printed_table_is_short_and_the_csv_keeps_every_column(store, caplog):
+    caplog.set_level(logging.INFO)
+    base = {"method": "admm", "zstep": "sqp", "scenario": "dense", "gradients": "cv", "episodes": "40"}
+    for mpc, courteous, ms in [("paper", 0.0, 2.8), ("courteous", 0.825, 7.2)]:
+        log("planner", {**base, "mpc": mpc}, {"episodes": 40, "courteous": courteous, "merged": 0.9, "collision": 0.0,
+                                              "t_merge": 30.0, "fallbacks": 0.5, "step_ms_median": ms, "step_ms_p95": 2 * ms})
+    log("surrogate", {"source": "teacher"}, {"ramp_grad_rel_err_cv": 0.268, "ramp_grad_rel_err_cv_lo": 0.2,
+                                             "ramp_grad_rel_err_cv_hi": 0.3, "ramp_grad_rel_err_mean": 0.27})
+    df = run(compose_cfg("compare", [f"out_dir={store}"]))
+    lines = caplog.text.split("every row: ")[1].splitlines()
+    assert "d b_i/dZ error of the baselines: cv 0.268, mean Jacobian 0.270" in lines[0]
+    header = lines[1].split()
+    assert header[:3] == ["gradients", "method", "mpc"] and "react_corr_jac" not in header and "ade_rollout_m" not in header
+    row = next(line for line in lines[2:] if " courteous " in line)
+    lo, hi = wilson_by_roots(33, 40)  # 82.5% of 40 episodes
+    assert f"82.5 [{100 * lo:.1f}, {100 * hi:.1f}]" in row and "0.268 [0.200, 0.300]" in row and "7.2/14.4" in row
+    assert max(len(line) for line in lines[1:4]) < 120  # a terminal shows it
+    columns = (store / "compare.csv").read_text().splitlines()[0].split(",")
+    assert {"react_corr_jac", "ade_rollout_m", "C_max", "courteous_lo", "step_ms_p95"} <= set(columns) == set(df.columns)
