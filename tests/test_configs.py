@@ -138,8 +138,11 @@ def tunable(gain, offset=1.0, other=None):
     return gain, offset, other
 
 
-@pytest.mark.parametrize("config,overrides", [("results", [f"results_preset={o}"]) for o in options("results_preset")]
-                         + [("compare", []), ("bench", [])])
+@pytest.mark.parametrize("config,overrides", [
+    ("make_dataset", []), ("make_dataset", ["dataset=large", "scenario=two_lane"]), ("distill", []),
+    ("distill", ["model=student", "trainer=long"]), ("distill", ["trainer=ddp"]), ("surrogate", []),
+    ("planner", []), ("planner", ["scenario=random", "zstep=pygranso", "method=both", "episodes=4"]),
+    *(("results", [f"results_preset={o}"]) for o in options("results_preset")), ("compare", []), ("bench", [])])
 def test_shipped_configs_pass_their_schema(config, overrides):
     validate.check(compose_cfg(config, overrides), config)
 
