@@ -21,9 +21,8 @@ from omegaconf import DictConfig
 
 from bench import ceiling
 from bench.branches import heldout_seeds
-from bench.results import (
-    Plan,
-    add_training,
+from bench.results_plan import Plan, add_training
+from bench.results_tables import (
     beaten,
     ceiling_row,
     dense_table,

@@ -10,6 +10,7 @@ import pytest
 from test_batch import wilson_by_roots
 
 from bench import results
+from bench.results_tables import beaten, outcome_table
 from conftest import compose_cfg
 from data.dataset import episode_seeds
 
@@ -55,15 +56,24 @@ def episodes_csv(folder: str, method: str) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    """(report folder, work folder, Markdown) of one run of the tiny preset."""
+    """(report folder, work folder, Markdown, report's arguments (cfg, jobs' results, batches, work, dest)) of one run of
+    the tiny preset."""
     root = tmp_path_factory.mktemp("results")
-    path = results.run(compose_cfg("results", ["results_preset=tiny", f"out_dir={root / 'out'}", f"work_dir={root / 'work'}",
-                                               "n_jobs=1"]))
-    return root / "out", root / "work", path.read_text()
+    seen, report = [], results.report
+
+    def keep(*args):
+        seen.extend(args)
+        return report(*args)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(results, "report", keep)
+        path = results.run(compose_cfg("results", ["results_preset=tiny", f"out_dir={root / 'out'}",
+                                                   f"work_dir={root / 'work'}", "n_jobs=1"]))
+    return root / "out", root / "work", path.read_text(), seen
 
 
 def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
-    out, work, md = tiny
+    out, work, md, _ = tiny
     for f in ("b_imposed.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "accuracy_vs_speed.png",
               "snapshots_admm.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG" and f in md
@@ -97,7 +107,7 @@ def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
 
 
 def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
-    _, work, md = tiny
+    _, work, md, _ = tiny
     assert md.index("## Dense traffic (headline)") < md.index("## Ceiling calibration") < md.index("## Predictors")
     worlds = {sc: list(csv.DictReader(open(work / "ceiling" / f"ceiling_{sc}.csv")))
               for sc in ("dense", "random", "two_lane", "three_lane")}
@@ -163,14 +173,44 @@ def test_a_planner_beats_the_ceiling_with_a_courteous_merge_it_missed_or_made_la
               {"seed": 3, "ceiling_courteous": 1.0, "ceiling_t_merge": 20.0}]
     episodes = [{"seed": 1, "courteous": 1.0, "t_merge": 19.0}, {"seed": 2, "courteous": 1.0, "t_merge": 59.0},
                 {"seed": 3, "courteous": 1.0, "t_merge": 20.0}]
-    assert results.beaten(worlds, episodes) == {1, 2}
-    assert results.beaten(worlds, [dict(e, courteous=0.0) for e in episodes]) == set()  # a forced merge beats nothing
+    assert beaten(worlds, episodes) == {1, 2}
+    assert beaten(worlds, [dict(e, courteous=0.0) for e in episodes]) == set()  # a forced merge beats nothing
 
 
-def test_gradients_table_scores_the_student_and_the_surrogate_beside_both_baselines(tiny):
+def test_gradients_table_shows_the_surrogate_jobs_scores_of_every_source_with_their_intervals(tiny):
+    _, work, md, _ = tiny
+    runs = mlflow.search_runs(experiment_names=["surrogate"])
+    (job,) = [r for _, r in runs.iterrows() if str(r["params.models_dir"]).startswith(str(work))]  # one training
     rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
-            for line in section(tiny[2], "Gradients").splitlines() if line.startswith("| ") and "---" not in line}
-    for name in ("surrogate", "student", "constant velocity (baseline)", "mean Jacobian (baseline)"):
-        rel_err, react = numbers(rows[name][2]), numbers(rows[name][3])  # d b_i/dZ and its reaction part
-        assert rel_err and rel_err[0] >= 0.0 and react and react[0] >= 0.0, name
+            for line in section(md, "Gradients").splitlines() if line.startswith("| ") and "---" not in line}
+    for name, suffix in (("surrogate", ""), ("student", "_student"), ("constant velocity (baseline)", "_cv"),
+                         ("mean Jacobian (baseline)", "_mean")):
+        for column, score in ((2, "grad_rel_err"), (3, "react_rel_err"), (5, "ramp_grad_rel_err")):
+            mean, lo, hi = (job[f"metrics.{score}{suffix}{end}"] for end in ("", "_lo", "_hi"))
+            assert numbers(rows[name][column]) == pytest.approx([mean, lo, hi] if hi > lo else [mean], abs=5e-4), (name, score)
     assert numbers(rows["constant velocity (baseline)"][3])[0] == pytest.approx(1.0, abs=1e-3)  # cv: no reaction at all
+
+
+def test_each_section_keeps_its_intervals_when_sections_are_added_or_reordered(tiny, tmp_path):
+    _, _, md, args = tiny
+    report = results.Report(*args[:4], tmp_path)
+    assert results.render(report) == md  # the published report, rendered again from the same jobs
+    alone = {name: results.render(report, [(name, fn)]) for name, fn in results.SECTIONS}
+    assert re.search(r"\[\d+\.\d+, \d+\.\d+\]", alone["dense"] + alone["random"])  # there are bootstrap intervals to move
+
+    def added(r):  # a new section, first, bootstrapping the random merges' episodes again
+        return {"table": "\n".join(outcome_table(r.batch_rows("random", r.p.sources)))}
+
+    prose = {**results.texts(), "added": "## Added\n\n{table}\n"}
+    shuffled = results.render(results.Report(*args[:4], tmp_path), [("added", added), *results.SECTIONS[::-1]], prose)
+    for name, text in alone.items():
+        assert text in shuffled, name
+
+
+def test_readme_headline_rows_are_the_generated_reports_rows():
+    root = Path(__file__).parents[1]
+    readme = (root / "README.md").read_text().split("\n## Results\n")[1].split("\n## ")[0]
+    rows = [line for line in readme.splitlines() if line.startswith("| ")]
+    generated = section((root / "results" / "README-results.md").read_text(), "Dense traffic (headline)").splitlines()
+    assert len(rows) >= 5 and rows[0].startswith("| gradients | method |")
+    assert [r for r in rows if r not in generated] == []  # every figure copied, none typed

@@ -9,7 +9,7 @@ import pytest
 import torch
 from test_surrogate import smooth_student
 
-from bench import interaction, results
+from bench import interaction, results_plan
 from core import validate
 from core.jobs import CONF_DIR, UserError, check_groups
 from core.rollout import SLOTS, T_OBS
@@ -49,7 +49,7 @@ def test_the_listed_sources_are_the_yaml_files():
         check_groups(["gradients=nope"])
     assert available(needs_world=False) == [f for f in files if f != "oracle"] == list(interaction.SOURCES)
     assert available(torch_rollout=True) == ["teacher"]
-    assert results.TRAINED == ("fd", "student", "surrogate", "teacher")
+    assert results_plan.TRAINED == ("fd", "student", "surrogate", "teacher")
     assert validate.TRAINED_PREDICTORS == ("student", "teacher")
 
 

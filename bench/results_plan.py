@@ -1,0 +1,157 @@
+"""The job plan of `results` (bench/results.py): which jobs run, in which order, with which overrides, and where each
+writes; the report's sections read the jobs' results by label and the planner batches' folders."""
+import logging
+import time
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from bench import ceiling
+from bench.branches import heldout_seeds
+from core.jobs import UserError, job_config
+from planner.batch import progress
+from planner.gradients import available, reads_models
+
+log = logging.getLogger(__name__)
+TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
+
+
+class Plan:
+    """The job list of a preset: (label, thunk) pairs run in order under one progress bar, results kept by label."""
+
+    def __init__(self):
+        self.steps, self.out = [], {}
+
+    def add(self, label, fn, *args):
+        self.steps.append((label, fn, args))
+
+    def run(self):
+        bar = progress(None, len(self.steps), "results")
+        with bar:
+            for label, fn, args in self.steps:
+                bar.set_postfix_str(label)
+                t0 = time.perf_counter()
+                self.out[label] = fn(*args)
+                log.info("results: %s done in %.1f s", label, time.perf_counter() - t0)
+                bar.update()
+        return self.out
+
+
+def check_seeds(cfg, interaction_cfg) -> range:
+    """The planner's held-out world seeds; a UserError if one was a dataset episode's or an interaction benchmark world's."""
+    p = cfg.results_preset
+    n = max(p.episodes, p.table2_episodes, p.dense_episodes, p.calibration_episodes)
+    seeds = heldout_seeds("planner_seed", cfg.planner_seed, n, interaction_cfg.dataset)
+    lo = interaction_cfg.seed_offset
+    hi = lo + interaction_cfg.states * interaction_cfg.branch.tries
+    if seeds.start < hi and lo < seeds.stop:
+        raise UserError(f"planner_seed={cfg.planner_seed}: planner seeds {seeds.start}..{seeds.stop - 1} overlap the "
+                        f"interaction benchmark's {lo}..{hi - 1}; choose another planner_seed")
+    return seeds
+
+
+def ceiling_worlds(p) -> dict:
+    """{scenario: worlds} of the preset p's ceiling runs: dense (the headline's worlds), the calibration scenarios and Table
+    II's; a fixed scenario takes table2_episodes (its seed draws only the hidden decisions), a sampled one
+    calibration_episodes."""
+    out = {}
+    for sc in dict.fromkeys(["dense", *p.calibration, *p.scenarios]):
+        fixed = job_config("ceiling", [f"scenario={sc}"]).scenario._target_ == "data.scenarios.Scenario"
+        out[sc] = p.dense_episodes if sc == "dense" else p.table2_episodes if fixed else p.calibration_episodes
+    return out
+
+
+def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, models: Path, runs: Path, extra, seed=0,
+                 surrogate=True, iterates=None):
+    """Add to `plan` the teacher, the student and (with `surrogate`) the surrogate trained on dataset_dir (of conf/dataset/
+    option `dataset`) into `models` with training seed `seed`: jobs 'distill <model> <tag>' and 'surrogate <tag>', their
+    run folders runs/distill-<model>-<name> and runs/surrogate-<name>; extra: each job's extra overrides by key
+    (teacher, student, surrogate). With `iterates` (overrides of a `planner` batch), job 'iterates <tag>' first records
+    the states that planner linearises at into runs/iterates-<name>, and the surrogate trains and is tested on them."""
+    from distill import train
+    from planner import cli as planner_cli
+    from surrogate import cli as surrogate_cli
+
+    common = [f"dataset={dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}"]
+    for model in ("teacher", "student"):
+        plan.add(f"distill {model} {tag}", train.run, job_config("distill", [
+            f"model={model}", *common, f"run_dir={runs / f'distill-{model}-{name}'}", "trainer.enable_progress_bar=false",
+            *extra[model]]))
+    if not surrogate:
+        return
+    recorded = []
+    if iterates is not None:
+        folder = runs / f"iterates-{name}"
+        plan.add(f"iterates {tag}", planner_cli.run, job_config("planner", [
+            *iterates, f"models_dir={models}", f"record_dir={folder / 'episodes'}", f"out_dir={folder}", "plots=false"]))
+        recorded = [f"data.iterates={folder / 'episodes'}"]
+    plan.add(f"surrogate {tag}", surrogate_cli.run, job_config("surrogate", [
+        f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}", f"out_dir={runs / f'surrogate-{name}'}",
+        *recorded, *extra["surrogate"]]))
+
+
+def build_plan(cfg, work: Path):
+    """The preset's jobs (Plan) and the planner batches' output folders {(scenario, source, seed k or None): folder}."""
+    from bench import interaction, step_time
+    from data import cli as data_cli
+    from planner import cli as planner_cli
+    from planner.setup import planner_config
+
+    p = cfg.results_preset
+    data_dir, plan, batches = work / "data", Plan(), {}
+    dataset_dir = data_dir / p.dataset
+    plan.add("make-dataset", data_cli.run, job_config("make_dataset", [f"dataset={p.dataset}", f"out_dir={data_dir}",
+                                                                       "plot_episodes=0"]))
+    models = lambda k: work / "models" / f"seed{k}"
+    for k in p.training_seeds:
+        add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k, iterates=p.iterates)
+    interaction_cfgs = {}
+    for i, k in enumerate(p.training_seeds):
+        sources = [s for s in p.interaction_sources if i == 0 or s in TRAINED]  # untrained ones once
+        interaction_cfgs[k] = job_config("evaluate_interaction", [
+            f"dataset={p.dataset}", f"models_dir={models(k)}", f"out_dir={work / 'interaction' / f'seed{k}'}",
+            f"sources=[{','.join(sources)}]", *p.interaction])
+        plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
+    check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
+    options = mpc_overrides(p.mpc_options)
+    runs = [("dense", s, p.dense_episodes, extra) for extra in options for s in p.sources] + \
+        [("random", s, p.episodes, []) for s in p.sources] + \
+        [(sc, s, p.table2_episodes, extra) for sc in p.scenarios for extra in options for s in p.table2_sources]
+    for scenario, source, episodes, extra in runs:
+        for k in p.training_seeds if source in TRAINED else [None]:
+            row = label(source, extra)
+            folder = work / "planner" / scenario / row / (f"seed{k}" if k is not None else "untrained")
+            batches[scenario, row, k] = folder
+            plan.add(f"planner {scenario} {row}" + (f" seed {k}" if k is not None else ""), planner_cli.run, planner_config(scenario, [
+                f"gradients={source}", "method=both", *extra, f"episodes={episodes}", f"seed={cfg.planner_seed}",
+                f"models_dir={models(p.training_seeds[0] if k is None else k)}", f"out_dir={folder}", "plots=false",
+                f"n_jobs={cfg.n_jobs}", f"backend={cfg.backend}", f"ray.address={cfg.ray.address or 'null'}", *p.planner]))
+    for scenario, worlds in ceiling_worlds(p).items():
+        plan.add(f"ceiling {scenario}", ceiling.run, job_config("ceiling", [
+            f"scenario={scenario}", f"seed={cfg.planner_seed}", f"episodes={worlds}", f"n_jobs={cfg.n_jobs}",
+            f"out_dir={work / 'ceiling'}", *([f"blind.episodes={p.blind_episodes}"] if scenario == "dense" else []),
+            *p.ceiling]))
+    if p.bench is not None:
+        plan.add("bench step time", step_time.run, job_config("bench", [
+            f"models_dir={models(p.training_seeds[0])}", f"states.path={work / 'bench' / 'states.npz'}", *p.bench]))
+    show = OmegaConf.from_dotlist(list(p.showcase)).get("scenario", "two_lane")
+    plan.add("showcase", planner_cli.run, planner_config(show, [
+        "method=both", f"seed={cfg.planner_seed}", f"models_dir={models(p.training_seeds[0])}",
+        f"out_dir={work / 'showcase'}", *[o for o in p.showcase if not o.startswith("scenario=")], *p.planner]))
+    return plan, batches
+
+
+def label(source: str, extra: list) -> str:
+    """A batch's row name: the gradient source, with its conf/mpc/ option when not the paper's ("student courteous")."""
+    mpc = [o.split("=", 1)[1] for o in extra if o.startswith("mpc=")]
+    return " ".join([source, *mpc])
+
+
+def mpc_overrides(options) -> list[list[str]]:
+    """The planner overrides of each kind of row: none (the paper's step), then each conf/mpc/ option, ADMM alone."""
+    return [[], *([f"mpc={m}", "method=admm"] for m in options)]
+
+
+def with_options(sources, options) -> list[str]:
+    """Row names of sources with the paper's step, then with each conf/mpc/ option ("student courteous")."""
+    return [label(s, extra) for extra in mpc_overrides(options) for s in sources]

@@ -1,0 +1,82 @@
+"""The figures of `results` (bench/results.py), drawn from the report's own tables."""
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bench.results_tables import GRADIENT_ROWS, METHODS
+from planner import compare
+from surrogate.evaluate import ENDS
+
+
+def bar_plot(rows: dict, key: str, ylabel: str, title: str, path: Path, scale=1.0):
+    """Grouped bars (a group per source, a bar per method) of rows[...][key] with its 95% interval as error bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sources = list(dict.fromkeys(s for s, _ in rows))
+    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(sources), 4))
+    for j, m in enumerate(METHODS):
+        x = np.arange(len(sources)) + (j - 0.5) * 0.38
+        v = np.array([rows[s, m][key] for s in sources]) * scale
+        lo = np.array([rows[s, m][f"{key}_lo"] for s in sources]) * scale
+        hi = np.array([rows[s, m][f"{key}_hi"] for s in sources]) * scale
+        err = np.nan_to_num(np.abs(np.vstack([v - lo, hi - v])))
+        ax.bar(x, np.nan_to_num(v), width=0.36, yerr=err, capsize=4, label=m.upper(), color=("tab:red", "tab:purple")[j],
+               alpha=0.8)
+    ax.set_xticks(np.arange(len(sources)), sources)
+    ax.set(ylabel=ylabel, title=title)
+    ax.legend()
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def braking_plot(values: dict, b_safe: float, b_max: float, path: Path):
+    """Box plots, one per row of the dense table ({name: per-world largest braking imposed on another car, m/s^2}), with
+    every world as a dot, b_safe (courteous) and b_max (the physical cap) marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(2.0 + 0.9 * len(values), 4.5))
+    jitter = np.random.default_rng(0)
+    for i, v in enumerate(values.values()):
+        if len(v):
+            ax.boxplot([v], positions=[i], widths=0.5, showfliers=False)
+            ax.plot(i + jitter.uniform(-0.15, 0.15, len(v)), v, ".", color="tab:blue", alpha=0.4, ms=4)
+    ax.axhline(b_safe, color="tab:red", ls="--", lw=1, label=f"b_safe = {b_safe:g} m/s^2 (courteous)")
+    ax.axhline(b_max, color="k", ls=":", lw=1, label=f"b_max = {b_max:g} m/s^2 (physical cap)")
+    ax.set_xticks(np.arange(len(values)), list(values), rotation=30, ha="right")
+    ax.set(xlim=(-0.6, len(values) - 0.4), ylabel="largest braking imposed on another car (m/s^2)",
+           title="dense traffic: braking imposed per world")
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
+    """compare's figure (planner.compare.plot) from the report's own figures: per dense ADMM row, the gradient error of its
+    source along ramps (the baselines as lines), its courteous-merge rate and its source's react_corr_jac, against the
+    row's median MPC step (ms) on the dense worlds."""
+    names = {v: k for k, v in GRADIENT_ROWS.items()}  # a surrogate-job suffix -> its row of the Gradients table
+    base = {f"ramp_grad_rel_err{suffix}": gradients[names[suffix]]["ramp_grad_rel_err"][0] for suffix in ("_cv", "_mean")}
+    rows = []
+    for (name, method), r in dense.items():
+        if method != "admm":
+            continue
+        source = name.split(" ", 1)[0]  # the row name's gradient source (label)
+        suffix = compare.SOURCE_SUFFIX.get(source)
+        grad = (np.nan,) * 3 if suffix is None else gradients[names[suffix]]["ramp_grad_rel_err"]
+        rows.append({"gradients": name, "method": method, "step_ms_median": r["step_ms_median"],
+                     "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],
+                     **dict(zip((f"ramp_grad_rel_err{e}" for e in ENDS), grad)), **base,
+                     "react_corr_jac": inter.get(source, {}).get("react_corr_jac", (np.nan,))[0],
+                     "n_episodes": r["episodes"], "n_runs": r["trainings"]})
+    compare.plot(pd.DataFrame(rows), path)
