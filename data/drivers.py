@@ -1,5 +1,5 @@
 """Driver behaviours of the other cars: IDM car following, yielding to an intruding ego, MOBIL lane changes."""
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -49,3 +49,14 @@ def sample_driver(rng: np.random.Generator, ranges: dict, **fixed) -> IDMDriver:
     params = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in sorted(ranges.items())}
     params.update(fixed)
     return IDMDriver(**params)
+
+
+COOPERATION = {"stubborn": 0.0, "mixed": None, "willing": 1.0}  # scenario.cooperation: every driver's eta_coop, or None: each its own
+
+
+def cooperate(drivers, level: str) -> list:
+    """`drivers` with the hidden willingness of cooperation `level` (COOPERATION): stubborn sets every eta_coop to 0 (nobody
+    yields), willing to 1 (everybody yields to an intruding ego), mixed keeps each driver's own (in random and dense
+    scenarios drawn uniformly in driver_ranges.eta_coop, [0, 1])."""
+    eta = COOPERATION[level]
+    return list(drivers) if eta is None else [replace(d, eta_coop=eta) for d in drivers]

@@ -6,7 +6,7 @@ import numpy as np
 
 from core.jobs import UserError
 from data import bicycle
-from data.drivers import IDMDriver, sample_driver
+from data.drivers import COOPERATION, IDMDriver, cooperate, sample_driver
 from data.world import Road, World
 
 
@@ -29,11 +29,14 @@ class Scenario:
     b_max: float  # the hardest any other car can brake (m/s^2)
     b_safe: float  # a merge is courteous when nobody brakes harder than this (m/s^2)
     merge_tol: float  # merged once the ego's centre is this close to the target lane's centre (m)
+    cooperation: str  # the hidden willingness to yield: stubborn (nobody), mixed (each driver's own), willing (all)
     predictor_moves: ClassVar[bool] = True  # its worlds can put the others where a predictor says (world=predictor)
 
     def __post_init__(self):
         if self.b_safe > self.b_max:
             raise UserError(f"scenario.b_safe={self.b_safe} exceeds scenario.b_max={self.b_max}: no car can brake that hard")
+        if self.cooperation not in COOPERATION:
+            raise UserError(f"scenario.cooperation={self.cooperation}: must be one of {', '.join(COOPERATION)}")
 
     @property
     def y_ref(self):
@@ -50,10 +53,11 @@ class Scenario:
         return None
 
     def make_world(self, seed: int) -> World:
-        """A fresh world for one episode; the seed fixes sampled quantities and every hidden yield decision."""
+        """A fresh world for one episode; the seed fixes sampled quantities and every hidden yield decision (drawn after
+        everything else, Bernoulli(eta_coop) per driver: a cooperation level changes those alone)."""
         rng = np.random.default_rng(seed)
         e = self.sample(rng)
-        road, v, drivers, ego = e["road"], e["platoon_v"], e["drivers"], e["ego"]
+        road, v, drivers, ego = e["road"], e["platoon_v"], cooperate(e["drivers"], self.cooperation), e["ego"]
         xs = [e["platoon_x"]]
         for d in drivers[1:]:
             xs.append(xs[-1] - road.car_length - e["gap_factor"] * d.equilibrium_gap(v))

@@ -101,13 +101,13 @@ def test_ceiling_merges_where_a_known_strategy_works_and_fails_where_none_can():
     # one wide gap beside the ego: entering needs nobody to yield
     open_lane = lane_world([[9.2, 0.0, 0.0, 5.0], [30.0, 4.0, 0.0, 5.0], [2.0, 4.0, 0.0, 5.0], [-6.0, 4.0, 0.0, 5.0]],
                            [False] * 4, v0=5.0)
-    best = ceiling.search_world(open_lane, sc, cfg)
+    best = ceiling.search_world(open_lane, sc, cfg)[1]
     assert best.courteous and best.t_merge < 20
     # bumper to bumper, nobody yields, and the lane ends 10 m ahead: no courteous merge exists
     closed = lane_world([[9.2, 0.0, 0.0, 5.0]] + [[x, 4.0, 0.0, 5.0] for x in np.arange(40.0, -40.0, -4.0)],
                         [False] * 21, v0=5.0, T=0.1, s0=0.4)
     walled = instantiate(compose_cfg("ceiling", ["scenario=dense", "scenario.x_ref=20"]).scenario, _convert_="all")
-    assert not ceiling.search_world(closed, walled, cfg).courteous
+    assert not ceiling.search_world(closed, walled, cfg)[1].courteous
 
 
 def test_the_best_fixed_strategy_is_chosen_on_other_worlds_and_driven_on_the_batch(tmp_path, capsys):
