@@ -55,6 +55,17 @@ def bootstrap(groups, statistic, resamples: int, seed=None, within: bool = True)
     return np.nanpercentile(np.array(draws), [2.5, 97.5], axis=0)
 
 
+
+def paired_ratio(numerator, denominator, resamples: int, seed=None) -> tuple[float, float, float]:
+    """(mean, lo, hi): the mean of the per-pair ratios numerator / denominator (a planner's t_merge over the ceiling's on
+    each world both merged courteously: never a ratio of medians) with its 95% percentile-bootstrap interval over pairs
+    (bootstrap, one group); nan for no pairs. seed as in bootstrap."""
+    r = np.asarray(numerator, float) / np.asarray(denominator, float)
+    if not len(r):
+        return (float("nan"),) * 3
+    lo, hi = bootstrap([r], np.mean, resamples, seed)
+    return float(r.mean()), float(lo), float(hi)
+
 def values_of(rows, key: str, weight: str | None):
     """(values, weights) of metric `key` over rows: the finite values, each weighted by the episodes its row stands for
     (row[weight], 1 when weight is None), for t_merge by its merged episodes only."""

@@ -7,6 +7,7 @@ from hydra.utils import instantiate
 
 from bench import ceiling
 from conftest import compose_cfg
+from core import stats
 from core.jobs import UserError, build
 from data import outcomes
 from data.drivers import IDMDriver
@@ -148,3 +149,16 @@ def test_cooperation_levels_set_the_hidden_decisions_and_nothing_else():
     assert not scenario("two_lane", "scenario.cooperation=stubborn").make_world(0).decisions().any()
     with pytest.raises(UserError, match="scenario.cooperation=polite: must be one of stubborn, mixed, willing"):
         build(compose_cfg("ceiling", ["scenario.cooperation=polite"]).scenario)
+
+
+def test_the_paired_t_merge_ratio_resamples_worlds_not_medians():
+    planner, ceiling_t = np.array([40.0, 33.0, 30.0, 60.0]), np.array([20.0, 33.0, 30.0, 30.0])
+    mean, lo, hi = stats.paired_ratio(planner, ceiling_t, 2000, seed=0)
+    assert mean == pytest.approx(1.5)  # (2 + 1 + 1 + 2) / 4; the ratio of medians would be 36.5 / 31.5
+    assert 1.0 <= lo < mean < hi <= 2.0  # every resample's mean lies between the smallest and largest ratio
+    draws, by_hand = np.random.default_rng(0), []  # the same resamples by hand: 4 worlds drawn with replacement
+    for _ in range(2000):
+        draws.integers(1, size=1)  # the group drawn (there is one: the worlds)
+        by_hand.append(np.mean((planner / ceiling_t)[draws.integers(4, size=4)]))
+    assert [lo, hi] == pytest.approx(np.percentile(by_hand, [2.5, 97.5]))
+    assert all(np.isnan(stats.paired_ratio([], [], 100, seed=0)))
