@@ -1,4 +1,4 @@
-"""`results` (`make results`): every table and figure of the README's Results section, regenerated from scratch.
+"""`results` (`make results`): every table and figure of results/ (the README's headline among them), from scratch.
 
 Three parts: the job plan (bench/results_plan.py: the dataset; per training seed k the teacher, the student and the
 surrogate into <work_dir>/models/seed<k>; the interaction benchmark per training; the planner's held-out batches (dense
