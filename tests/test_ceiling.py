@@ -162,3 +162,19 @@ def test_the_paired_t_merge_ratio_resamples_worlds_not_medians():
         by_hand.append(np.mean((planner / ceiling_t)[draws.integers(4, size=4)]))
     assert [lo, hi] == pytest.approx(np.percentile(by_hand, [2.5, 97.5]))
     assert all(np.isnan(stats.paired_ratio([], [], 100, seed=0)))
+
+
+def test_ceiling_on_ray_gives_the_rows_of_local_processes(tmp_path):
+    ray = pytest.importorskip("ray")
+    tiny = ["search.gaps=0", "search.y_lean=[1.8]", "search.clearance=[1.0]", "search.enter=[4]", "search.dv=[0.0]",
+            "search.y_wait=[1.8]", "search.accept_dv=[-10.0]", "refine.iterations=1", "refine.samples=3", "refine.elites=1",
+            "episodes=2", "seed=2000000", "max_steps=40"]
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        ceiling.run(compose_cfg("ceiling", [*tiny, "backend=ray", "n_jobs=2", f"out_dir={tmp_path / 'ray'}"]))
+    finally:
+        ray.shutdown()
+    ceiling.run(compose_cfg("ceiling", [*tiny, "n_jobs=1", f"out_dir={tmp_path / 'loky'}"]))
+    on_ray, local = (pd.read_csv(tmp_path / d / "ceiling_dense.csv").drop(columns="cpu_seconds") for d in ("ray", "loky"))
+    pd.testing.assert_frame_equal(on_ray, local)
+    assert list(local["seed"]) == [2000000, 2000001]
