@@ -1,5 +1,6 @@
 """What every job shares: one-line user errors, stop signals, atomic writes, and MLflow runs that log their whole config."""
 import contextlib
+import errno
 import fcntl
 import os
 import shutil
@@ -63,6 +64,10 @@ class UserError(Exception):
     """A problem the user can fix (missing or corrupt file, bad value); printed as one line, never a traceback."""
 
 
+class MissingModel(UserError):
+    """A model file that has not been made yet (a job that can do without it may skip it; a corrupt one is a UserError)."""
+
+
 def check_groups(argv):
     """One clear line, before Hydra, for a config-group override naming an option that does not exist (each value of a
     comma-separated sweep checked)."""
@@ -103,12 +108,61 @@ class Stopped(BaseException):
 
 
 _STOPPED = []  # the signal that stopped this process: a library that catches Stopped may raise its own error instead
+RETRY_S = 0.005  # s: how soon a signal held back inside a compiled call is tried again
+_DEFERRED = []  # non-empty inside uninterrupted(): a stop signal is recorded there and raised at its end
+
+
+def _in_numba_callback(frame) -> bool:
+    """Whether `frame` runs inside numba's unpickler, which compiled code calls back into Python (to build an exception
+    or a constant): an exception raised there is lost by the compiled caller (SystemError "returned a result with an
+    exception set") or crashes it (a segmentation fault in planner.jit_admm's one-call solve)."""
+    serialize = sys.modules.get("numba.core.serialize")
+    while serialize is not None and frame is not None:
+        if frame.f_code.co_filename == serialize.__file__:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _stop(signum, frame):
-    signal.signal(signum, signal.SIG_IGN)  # a second signal must not interrupt the clean-up this one starts
-    _STOPPED.append(signum)
+    """SIGTERM/SIGINT: raise Stopped here, or, where raising is unsafe, at the first safe point; a later signal is
+    ignored (the first one's clean-up runs)."""
+    import _thread
+
+    if _STOPPED and not _STOPPED[1:]:  # a second signal while the first one is being handled
+        return
+    if not _STOPPED:
+        _STOPPED.append(signum)
+    _STOPPED[1:] = []
+    if _DEFERRED:
+        return  # uninterrupted() raises it when its block ends
+    if _in_numba_callback(frame):
+        _STOPPED.append("retry")  # marks the next call of this handler as this signal's, not a second one
+        # this handler again, from a thread: it runs once the compiled call has returned the GIL to Python code
+        retry = threading.Timer(RETRY_S, _thread.interrupt_main, (signum,))
+        retry.daemon = True
+        retry.start()
+        return
     raise Stopped(signum)
+
+
+@contextlib.contextmanager
+def uninterrupted():
+    """A block a stop signal does not cut: one that arrives inside it is raised (Stopped) when the block ends."""
+    before = stop_signal()
+    _DEFERRED.append(True)
+    try:
+        yield
+    finally:
+        _DEFERRED.pop()
+    if before is None and stop_signal() is not None and not _DEFERRED:
+        raise Stopped(stop_signal())
+
+
+def check_stopped() -> None:
+    """Raise Stopped if a stop signal arrived (for a loop whose step may have caught the signal's exception)."""
+    if stop_signal() is not None:
+        raise Stopped(stop_signal())
 
 
 def stop_signal() -> int | None:
@@ -140,8 +194,8 @@ def drop_empty_run_dir():
 
 
 def guarded(fn):
-    """Run a job body; a UserError becomes one 'error: ...' line on stderr and exit status 2 (its empty Hydra folder
-    removed), SIGTERM and SIGINT one line and exit 128 + the signal number.
+    """Run a job body; a UserError or a full disk becomes one 'error: ...' line on stderr and exit status 2 (a UserError's
+    empty Hydra folder removed), SIGTERM and SIGINT one line and exit 128 + the signal number.
 
     Both signals raise Stopped (Lightning, which otherwise turns SIGTERM into a clean exit 0 and Ctrl-C into exit 1, calls
     this handler after its own), so the MLflow run ends KILLED and `make` stops.
@@ -160,6 +214,15 @@ def guarded(fn):
         except Stopped as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(128 + e.signum)
+        except Exception as e:
+            if stop_signal() is not None:  # a library turned the signal's Stopped into an error of its own
+                print(f"error: stopped by {signal.Signals(stop_signal()).name}", file=sys.stderr)
+                sys.exit(128 + stop_signal())
+            if not (isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)):
+                raise
+            print(f"error: no space left on the device of {e.filename or 'an output file'}; the old outputs are kept",
+                  file=sys.stderr)
+            sys.exit(2)
         finally:
             for s, handler in previous.items():
                 signal.signal(s, handler)
@@ -289,7 +352,7 @@ def mlflow_run(experiment: str, cfg: DictConfig, run_name: str | None = None, **
         yield run
     except BaseException as e:
         mlflow.set_tag("error", f"{type(e).__name__}: {e}"[:5000])
-        mlflow.end_run("KILLED" if isinstance(e, (Stopped, KeyboardInterrupt)) else "FAILED")
+        mlflow.end_run("KILLED" if isinstance(e, (Stopped, KeyboardInterrupt)) or stop_signal() is not None else "FAILED")
         raise
     mlflow.end_run("FINISHED")
 
@@ -306,38 +369,91 @@ def writable(folder: Path, key: str) -> Path:
     return folder
 
 
-@contextlib.contextmanager
-def atomic_dir(final: Path):
-    """Yield a fresh temporary folder beside `final`; on success it replaces `final`, on failure `final` is untouched."""
-    final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+def _alive(pid: int) -> bool:
+    """Whether process `pid` exists."""
     try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = final.with_name(f".{final.name}.old-{os.getpid()}")
-    if final.exists():
-        final.rename(old)
-    tmp.rename(final)
-    shutil.rmtree(old, ignore_errors=True)
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    return True
+
+
+def _fsync(path: Path) -> None:
+    """Flush a file's or a folder's entries to the disk (a rename is durable only once its folder is)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _locked(folder: Path):
+    """An exclusive lock on `folder` itself (flock on its descriptor): one commit or recovery at a time."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _roll_forward(folder: Path, pending: Path) -> None:
+    """Move every file of a committed set `pending` over its namesake in `folder`, then remove `pending`."""
+    for f in sorted(pending.iterdir()):
+        os.replace(f, folder / f.name)
+    pending.rmdir()
+    _fsync(folder)
+
+
+def recover(folder: Path) -> None:
+    """Finish what a job stopped mid-commit left in `folder` (a committed set is moved in whole) and remove the staging
+    folders of jobs that no longer run; a folder this process cannot write is left as it is."""
+    folder = Path(folder)
+    try:
+        leftovers = [p for p in folder.iterdir() if p.name.startswith((".commit-", ".staging-"))]
+    except OSError:  # no folder, or not readable: nothing of ours to finish
+        return
+    if not leftovers:
+        return
+    try:
+        with _locked(folder):  # a running commit holds it: its set is then moved by itself
+            for p in folder.glob(".commit-*"):
+                _roll_forward(folder, p)
+            for p in folder.glob(".staging-*"):
+                pid = p.name.rpartition("-")[2]
+                if pid.isdigit() and not _alive(int(pid)):
+                    shutil.rmtree(p, ignore_errors=True)
+    except OSError:
+        return
 
 
 @contextlib.contextmanager
 def staged(folder: Path):
-    """Yield a private staging folder inside `folder`; only when the block succeeds does every file written there replace
-    its namesake in `folder` (each by an atomic rename), so a job that fails anywhere leaves its old outputs intact."""
+    """Yield a private staging folder inside `folder`; only when the block succeeds do the files written there replace
+    their namesakes in `folder`, as one set: a job that fails or is stopped at any moment leaves the old set or the new,
+    never a mix, and every other file in `folder` is kept.
+
+    The commit is one rename (the staging folder to `.commit-<pid>`), then each file's rename, under a lock on `folder`
+    and with stop signals held back (uninterrupted); a process killed outright in between leaves the committed set,
+    which `recover` (called here and by the loaders) moves in whole."""
     folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    recover(folder)
     stage = folder / f".staging-{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
-    stage.mkdir(parents=True)
+    stage.mkdir()
     try:
         yield stage
-        for f in sorted(stage.iterdir()):
-            os.replace(f, folder / f.name)
+        for f in stage.iterdir():
+            _fsync(f)
+        with uninterrupted(), _locked(folder):
+            pending = folder / f".commit-{os.getpid()}"
+            os.rename(stage, pending)  # the commit: from here on the new set is the folder's
+            _fsync(folder)
+            _roll_forward(folder, pending)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from core.jobs import UserError, atomic_dir
+from core.jobs import UserError, recover, staged
 from data.perception import slot_ids
 from data.policies import follow, sample_policy
 from data.scenarios import Scenario
@@ -191,9 +191,27 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def restore_renamed(root: Path) -> None:
+    """Put back a dataset folder that an older make-dataset, stopped between its two folder renames, left as
+    .<name>.old-<pid> (with .<name>.tmp-<pid> beside it); nothing when `root` exists."""
+    if root.exists():
+        return
+    for kind in ("old", "tmp"):  # the old folder first; the new one only if the old one is gone too
+        for p in sorted(root.parent.glob(f".{root.name}.{kind}-*")):
+            if (p / "meta.json").is_file() and not root.exists():
+                p.rename(root)
+
+
 def save(root: Path, splits: dict, meta: dict) -> dict:
-    """Write {train,val,test}.npz and meta.json into `root` atomically (a failed write leaves any old dataset intact)."""
-    with atomic_dir(root) as tmp:
+    """Write {train,val,test}.npz and meta.json into `root` as one set (core.jobs.staged: a failed or stopped job leaves
+    the old set whole, and every other file or folder in `root`, such as iterates/, is kept); a split with no windows is
+    a UserError that keeps the old dataset."""
+    empty = [name for name, arrays in splits.items() if not len(arrays["X"])]
+    if empty:
+        raise UserError(f"dataset.T_obs={meta['T_obs']}: the {' and '.join(empty)} split(s) have 0 windows (an episode "
+                        f"needs more than T_obs steps; raise dataset.steps or lower dataset.T_obs); {root} is left as it was")
+    restore_renamed(root)
+    with staged(root) as tmp:
         files = {}
         for name, arrays in splits.items():
             np.savez_compressed(tmp / f"{name}.npz", **arrays)
@@ -206,6 +224,7 @@ def save(root: Path, splits: dict, meta: dict) -> dict:
 
 def read_meta(root: Path) -> dict:
     """The dataset's meta.json, validated; a missing or corrupt one is a UserError naming the file."""
+    recover(root)  # a set a stopped make-dataset committed but did not finish moving in
     path = Path(root) / "meta.json"
     if not path.exists():
         raise UserError(f"dataset not found: {path} is missing (build it with `make-dataset dataset={Path(root).name}`)")
@@ -239,6 +258,9 @@ def load(root, split: str) -> dict:
         raise UserError(f"cannot read dataset file {path}: {e}") from None
     t_obs, m = meta["T_obs"], meta["N"] + 1
     n = meta["splits"][split]["windows"]
+    if not n:
+        raise UserError(f"{path}: the {split} split has 0 windows; rebuild it with make-dataset (more dataset.steps or a "
+                        "smaller dataset.T_obs)")
     for key, (kind, shape) in ARRAYS.items():
         if key not in arrays:
             raise UserError(f"{path}: array '{key}' missing")

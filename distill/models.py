@@ -10,7 +10,7 @@ import torch
 from hydra.utils import instantiate
 from torch.func import vjp
 
-from core.jobs import UserError
+from core.jobs import MissingModel, UserError, recover
 from distill.predictors import ConstantVelocity
 from distill.student import phi_jac64
 
@@ -97,14 +97,33 @@ def read_checkpoint(path: Path, name: str | None = None) -> torch.nn.Module:
     return net.eval()
 
 
+def probe_window(T_obs: int = 8, M: int = 5) -> np.ndarray:
+    """A plausible window (1, T_obs, M, 2), m: the ego and M - 1 cars at 5 m/s, 8 m apart, alternating between two 4 m
+    lanes (0.2 s steps), where every sound model's output and Jacobian are finite."""
+    t = np.arange(1 - T_obs, 1)[:, None] * 0.2 * 5.0  # (T_obs, 1): x travelled since each step, the last one 0
+    cars = np.arange(M)
+    return np.stack([t + 8.0 * cars, np.broadcast_to(4.0 * (cars % 2), (T_obs, M))], axis=-1)[None]
+
+
+def check_finite(outputs, path, advice: str) -> None:
+    """One UserError naming `path` unless every array of `outputs` (a model's answer to probe_window) is finite."""
+    if not all(np.isfinite(a).all() for a in outputs):
+        raise UserError(f"{path} is a corrupt model: its output on a probe window is not finite (NaN or infinite "
+                        f"weights); {advice}")
+
+
 def load(name: str, models_dir):
-    """The predictor `name` (teacher | student | cv) from models_dir/<name>.ckpt."""
+    """The predictor `name` (teacher | student | cv) from models_dir/<name>.ckpt, checked finite on a probe window."""
     if name == "cv":
         return ConstantVelocity()
     if name not in NAMES:
         raise UserError(f"unknown predictor '{name}': choose one of {', '.join(NAMES)}")
+    recover(models_dir)  # a set a stopped distill committed but did not finish moving in
     path = Path(models_dir) / f"{name}.ckpt"
     if not path.exists():
-        raise UserError(f"{path} not found: run `distill model={name}`")
+        raise MissingModel(f"{path} not found: run `distill model={name}`")
     net = read_checkpoint(path, name)
-    return StudentPredictor(net) if name == "student" else TorchPredictor(name, net)
+    predictor = StudentPredictor(net) if name == "student" else TorchPredictor(name, net)
+    T_obs, M = predictor.window
+    check_finite(predictor.phi_jac(probe_window(T_obs or 8, M or 5)), path, f"re-run `distill model={name}`")
+    return predictor

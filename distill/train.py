@@ -141,15 +141,16 @@ def check_inputs(cfg: DictConfig):
                             "per batch); without them the term is never computed")
     for split in dict.fromkeys(("train", "val", cfg.eval_split)):
         dataset.load(cfg.dataset_dir, split)  # a missing or corrupt split stops here, naming the file
-    writable(cfg.models_dir, "models_dir")
     if cfg.ckpt_path is not None:
         if not Path(cfg.ckpt_path).is_file():
             raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
         models.read_checkpoint(Path(cfg.ckpt_path), cfg.model.name)
-    if cfg.model.name != "student":
-        return None
-    scenario_configs(cfg.model.certificate.scenarios)  # an unknown name fails here, not after training
-    return models.load(cfg.model.teacher, cfg.models_dir)
+    teacher = None
+    if cfg.model.name == "student":
+        scenario_configs(cfg.model.certificate.scenarios)  # an unknown name fails here, not after training
+        teacher = models.load(cfg.model.teacher, cfg.models_dir)
+    writable(cfg.models_dir, "models_dir")  # last: a rejected command creates no folder
+    return teacher
 
 
 def run(cfg: DictConfig):
@@ -191,7 +192,9 @@ def run(cfg: DictConfig):
             certificate.verify(cert, emp)
 
         models_dir = Path(cfg.models_dir)
-        with staged(models_dir) as stage:  # models/ changes only if every check below passes
+        models.check_finite(predictor.phi_jac(models.probe_window(*test["X"].shape[1:3])), best,
+                            f"the trained {name} is not kept; {models_dir} is left as it was")
+        with staged(models_dir) as stage:  # models/ changes only if every check below passes, as one set
             export_onnx(predictor.module, stage / f"{name}.onnx")
             onnx = load_onnx(name, stage)
             results["onnx_max_err_m"] = float(np.abs(onnx.phi(test["X"][:256]) - predictor.phi(test["X"][:256])).max())

@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from core import validate
 from core.jobs import CONF_DIR, check_overrides, guarded, mlflow_run, open_experiment, writable
 from planner import batch, report
+from planner.closed_loop import check_others
 from planner.setup import drive, run_params, setup
 
 log = logging.getLogger(__name__)
@@ -36,36 +37,45 @@ def translate(argv):
 
 @guarded
 def run(cfg: DictConfig) -> dict:
-    """Drive, log and summarise (cfg.episodes > 0: batch statistics, see planner.batch); returns {method: metrics}."""
+    """Drive, log and summarise (cfg.episodes > 0: batch statistics, see planner.batch); returns {method: metrics}. Each
+    method's MLflow run is open while it drives, so a stopped episode ends it KILLED."""
     validate.check(cfg, "planner")
     scenario, source, s = setup(cfg)
     out_dir = writable(Path(cfg.out_dir or HydraConfig.get().runtime.output_dir), "out_dir")
+    if cfg.record_dir:
+        writable(Path(cfg.record_dir), "record_dir")  # now, not after the first episode was driven
+    check_others(scenario.make_world(cfg.seed), cfg.world, cfg.n_slots)
     open_experiment("planner")  # an unusable store fails now, not after the episodes
     methods = list(cfg.method)
     if cfg.episodes:
         return batch.run(cfg, scenario, source, s, methods, out_dir)
-    episodes = {m: drive(cfg, scenario, source, s, m) for m in methods}
     title = f"{scenario.name}, gradients={source.name}, predictor={source.predictor.name}, world={cfg.world}"
-    shared = report.figures(episodes, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title, animation=False) \
-        if cfg.plots and len(episodes) > 1 else []
-    results = {}
-    for m, ep in episodes.items():
-        results[m] = report.metrics(ep, scenario)
-        csv_path = out_dir / f"steps_{m}.csv"
-        report.write_csv(ep, csv_path)
+    episodes, results, run_ids = {}, {}, {}
+    for m in methods:
         with mlflow_run("planner", cfg, run_name=f"{m}-{source.name}-{scenario.name}", method=m,
-                        **run_params(scenario, source, cfg)):
+                        **run_params(scenario, source, cfg)) as run_:
+            run_ids[m] = run_.info.run_id
+            ep = episodes[m] = drive(cfg, scenario, source, s, m)
+            results[m] = report.metrics(ep, scenario)
+            csv_path = out_dir / f"steps_{m}.csv"
+            report.write_csv(ep, csv_path)
             mlflow.log_metrics(results[m])
             mlflow.log_artifact(str(csv_path))
             own = report.figures({m: ep}, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title) if cfg.plots else []
             rendered = scenario.render(cfg.seed, ep.states, out_dir / f"render_{m}.gif") if cfg.plots else None
-            for p in own + shared + ([rendered] if rendered else []):
+            for p in own + ([rendered] if rendered else []):
                 mlflow.log_artifact(str(p), "plots")
             if ep.notes:
                 mlflow.set_tag("notes", "; ".join(ep.notes))
         reasons = sorted({r["fallback"] for r in ep.rows if r["fallback"]})
         for note in ep.notes + [f"fallback: {r}" for r in reasons]:
             log.info("[%s] %s", m, note)
+    if cfg.plots and len(episodes) > 1:  # the methods side by side, in each method's run
+        shared = report.figures(episodes, scenario.road, scenario.x_ref, scenario.y_ref, out_dir, title, animation=False)
+        client = mlflow.MlflowClient()
+        for run_id in run_ids.values():
+            for p in shared:
+                client.log_artifact(run_id, str(p), "plots")
     log.info("%s, seed %s; outputs in %s", title, cfg.seed, out_dir)
     log.info("\n%s", report.table({f"{scenario.name}/{m}": r for m, r in results.items()}))
     return results

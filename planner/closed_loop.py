@@ -9,18 +9,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.jobs import UserError, check_stopped
 from data import outcomes
 from data.perception import observe
 from data.protocol import World
 from data.world import overlap
 
 
+def check_others(world: World, others: str, n_slots: int) -> None:
+    """One UserError, before the first step, unless the predictor can move the others (world=predictor): it must see
+    every other car (n_slots of them)."""
+    cars = len(world.states()) - 1
+    if others == "predictor" and n_slots != cars:
+        raise UserError(f"world=predictor moves every car with the predictor, but it sees n_slots={n_slots} of the "
+                        f"{cars} other cars; set n_slots={cars} (a model trained for it) or use world=reactive")
+
+
 def predictor_move(world: World, history, ids, ego_u, source):
     """Advance dt with the ego on the bicycle and every other car where the predictor puts it (one step from history,
-    slots `ids`: every other car); returns collided pairs."""
-    if len(ids) != len(world.states()):
-        raise ValueError(f"world=predictor moves every car with the predictor, but it sees {len(ids) - 1} of "
-                         f"{len(world.states()) - 1}; set n_slots to the number of other cars")
+    slots `ids`: every other car, check_others); returns collided pairs."""
     nxt = source.values(history, np.zeros((1, 1, 2)))[0, 0]  # one step; the ego slot is not used
     return world.move(ego_u, nxt[1:])
 
@@ -37,12 +44,14 @@ class Episode:
 
 
 def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, others, n_slots):
-    """Run planner(obs, warm) -> StepResult until the ego passes x_ref or max_steps; never raises for a bad step.
+    """Run planner(obs, warm) -> StepResult until the ego passes x_ref or max_steps; never raises for a bad step, but
+    stops (Stopped) after a step during which a stop signal arrived, even if the step caught its exception.
 
     T_obs: observed steps; n_slots: the other cars the predictor sees (data.perception); others: "reactive" (the world's
     drivers) or "predictor" (moved by `source`)."""
     from planner.mpc import Observation
 
+    check_others(world, others, n_slots)
     z = world.states()
     ep = Episode(states=[z])
     start_hits = [j for j in range(1, len(z)) if overlap(z[0], z[j], world.road)]
@@ -60,6 +69,7 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
         t0 = time.perf_counter()
         result = planner(obs, warm)
         step_ms = 1e3 * (time.perf_counter() - t0)
+        check_stopped()  # a step falls back on any error, also on one a stop signal caused inside its solver
         u = np.nan_to_num(result.u)
         hits = world.step(u) if others == "reactive" else predictor_move(world, seen.history, seen.ids, u, source)
         if any(0 in pair for pair in hits):

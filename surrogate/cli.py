@@ -61,7 +61,7 @@ def load_iterates(folder, T_obs, M, T_p) -> list:
         try:
             with np.load(f) as d:
                 history, ego_future = d["history"].astype(np.float64), d["ego_future"].astype(np.float64)
-        except (OSError, ValueError, KeyError) as e:
+        except Exception as e:  # numpy raises several types for a damaged file (BadZipFile, OSError, EOFError, ...)
             raise UserError(f"{f}: not a recorded planner episode ({type(e).__name__}: {e})") from None
         if history.shape[1:] != (T_obs, M, 2) or ego_future.shape[1:] != (T_p, 2) or len(history) != len(ego_future):
             raise UserError(f"{f}: history {history.shape} and ego_future {ego_future.shape}, expected (n, {T_obs}, {M}, 2) "

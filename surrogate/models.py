@@ -3,8 +3,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.jobs import UserError
+from core.jobs import MissingModel, UserError, recover
 from distill.export import onnx_session
+from distill.models import check_finite, probe_window
 
 
 class Surrogate:
@@ -30,11 +31,12 @@ class Surrogate:
 
 def load(models_dir, T_obs, n_slots):
     """The surrogate from <models_dir>/surrogate.onnx, checked against window (B, T_obs, M, 2) -> J (B, M*2, T_obs*M*2),
-    M = n_slots + 1 (the ego and the other cars it sees)."""
+    M = n_slots + 1 (the ego and the other cars it sees), and finite on a probe window."""
     M = n_slots + 1
+    recover(models_dir)  # a model a stopped job committed but did not finish moving in
     path = Path(models_dir) / "surrogate.onnx"
     if not path.exists():
-        raise UserError(f"{path} not found: run `surrogate`")
+        raise MissingModel(f"{path} not found: run `surrogate`")
     expected = f"expected window (B, {T_obs}, {M}, 2) -> J (B, {2 * M}, {2 * T_obs * M})"
     session = onnx_session(path, f"{expected}; re-run `surrogate`")
     inputs = {i.name: i.shape[1:] for i in session.get_inputs()}
@@ -45,4 +47,7 @@ def load(models_dir, T_obs, n_slots):
     source = session.get_modelmeta().custom_metadata_map.get("source")
     if not source:
         raise UserError(f"{path} does not record the predictor it learned (ONNX metadata `source`); re-run `surrogate`")
-    return Surrogate(session, source, path)
+    surrogate = Surrogate(session, source, path)
+    window = probe_window(T_obs, M)
+    check_finite(surrogate.phi_jac(window) if surrogate.fused else (surrogate.jac(window),), path, "re-run `surrogate`")
+    return surrogate
