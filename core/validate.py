@@ -221,6 +221,8 @@ def check(cfg: DictConfig, schema) -> None:
         if not rule.ok(v):
             shown = "null" if v is None else v
             raise UserError(f"{key}={shown}: must be {rule.allowed()}{' or null' if rule.nullable else ''}")
+    if "scenario.road.lanes" in (SCHEMAS[schema] if isinstance(schema, str) else schema):
+        check_scenario(cfg)
 
 
 POS = Real(0, lo_open=True)  # > 0
@@ -242,7 +244,26 @@ PAPER = {  # conf/paper/table1.yaml, shared by distill, surrogate and planner
 SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every scenario shares, the dense stream's promise
     "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.merge_tol": POS, "scenario.x_ref": Real(), "scenario.followers": Int(1, optional=True),
     "scenario.min_behind_s": Real(0, optional=True), "scenario.safety_stretch": Real(1, optional=True),
+    "scenario.road.lanes": Int(2), **{f"scenario.road.{k}": POS for k in ("lane_width", "car_length", "car_width")},
+    **{f"scenario.params.{k}": POS for k in ("dt", "l_f", "l_r")}, "scenario.v_ref": NONNEG,
+    "scenario.ego.x": Real(), "scenario.ego.y": Real(), "scenario.ego.psi": Real(), "scenario.ego.v": NONNEG,
+    "scenario.lanes_choices": ListOf(Int(2), at_least=1, optional=True),  # a merge needs a lane to merge into
+    **{f"scenario.{k}": Range(0, optional=True) for k in ("speed_range", "gap_factor_range", "v0_factor_range", "beside_range")},
+    **{f"scenario.{k}": Range(optional=True) for k in ("ego_offset_range", "ego_dv_range")},
 }
+
+
+def check_scenario(cfg: DictConfig) -> None:
+    """One UserError for a scenario whose values each pass SCENARIO but not together: the ego's start off the road
+    (its narrowest: the fewest lanes it may draw), or a fixed scenario without drivers."""
+    sc = OmegaConf.to_container(cfg.scenario, resolve=True)
+    lanes = min(sc.get("lanes_choices") or [sc["road"]["lanes"]])
+    half, y = sc["road"]["lane_width"] / 2, sc["ego"]["y"]
+    if not -half <= y <= (lanes - 1) * 2 * half + half:
+        raise UserError(f"scenario.ego.y={y}: the ego must start on the road, y in [{-half:g}, {(2 * lanes - 1) * half:g}] m "
+                        f"({lanes} lanes of {2 * half:g} m)")
+    if not sc.get("drivers") and "driver_ranges" not in sc:
+        raise UserError(f"scenario.drivers={sc.get('drivers')}: scenario={sc['name']} needs at least one driver to merge among")
 
 DATASET = {
     "dataset.name": Name(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2), "dataset.n_slots": Int(1),
