@@ -137,6 +137,18 @@ class DenseMergeEnv(AbstractEnv):
         self.observation_type = StatesObservation(self, **obs_cfg)
         self.observation_space = self.observation_type.space()
 
+    def step(self, action):
+        """highway-env's step of an action [acceleration, steering]: two finite numbers (in [-1, 1]; beyond, clipped
+        when action.clip); anything else is one UserError."""
+        try:
+            a = np.asarray(action, dtype=float)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape != (2,) or not np.isfinite(a).all():
+            raise UserError(f"action {repr(action)[:80]}: {ENV_ID} takes [acceleration, "
+                            "steering], two finite numbers in [-1, 1]")
+        return super().step(a)
+
     def reset(self, *, seed=None, options=None):
         """Draw world `seed` of the scenario (None: one from the env's generator); (observation, info)."""
         self.world_seed = seed

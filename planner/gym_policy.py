@@ -16,8 +16,9 @@ seen). The frame and action mapping is data.highway's (to_ours, to_action), nowh
 """
 import numpy as np
 
+from core import validate
 from core.jobs import UserError, build
-from data.highway import DenseMergeEnv, to_action, to_ours
+from data.highway import ENV_ID, DenseMergeEnv, to_action, to_ours
 from data.perception import slot_ids
 from data.world import backfill
 from planner.mpc import Observation
@@ -32,6 +33,7 @@ class MergePolicy:
         overrides = list(overrides)
         scenario = next((o.split("=", 1)[1] for o in overrides if o.startswith("scenario=")), "highway")
         cfg = planner_config(scenario, [o for o in overrides if not o.startswith("scenario=")])
+        validate.check(cfg, "planner")  # the checks the `planner` command makes
         methods = list(cfg.method)
         if len(methods) != 1:
             raise UserError(f"method={'+'.join(methods)}: a policy drives one method; choose method=admm or method=nnmpc")
@@ -53,7 +55,13 @@ class MergePolicy:
         """The planner's Observation from an env observation (rows [present, id, x, y, heading, speed])."""
         if self.pasts is None:
             raise UserError("MergePolicy: call reset() at the start of every episode, before the first observation")
-        rows = np.asarray(observation, float)
+        try:
+            rows = np.asarray(observation, float)
+        except (TypeError, ValueError):
+            rows = np.zeros(0)
+        if rows.ndim != 2 or rows.shape[1] != 6 or not np.isfinite(rows).all():
+            raise UserError(f"MergePolicy: an observation is rows [present, id, x, y, heading, speed] of finite numbers "
+                            f"({ENV_ID}'s), not {np.shape(observation)}")
         rows = rows[rows[:, 0] > 0.5]
         ids, z = rows[:, 1].astype(int), to_ours(rows[:, 2:6])
         if len(ids) == 0 or ids[0] != 0:
