@@ -77,8 +77,8 @@ def load(path=DEFAULT_PATH) -> list[PlanningState]:
         return [PlanningState(str(a["scenario"][i]), mpc.Observation(a["z0"][i], a["u_prev"][i], a["history"][i]),
                               admm.ADMMState(a["Delta"][i], a["alpha"][i], a["Z"][i], a["mu"][i]) if a["has_warm"][i] else None)
                 for i in range(len(a["scenario"]))]
-    except (OSError, KeyError, ValueError) as e:
-        raise UserError(f"damaged planning states {path} ({e}); delete it to collect them again") from None
+    except Exception as e:  # numpy raises several types for a damaged file (BadZipFile, OSError, EOFError, KeyError, ...)
+        raise UserError(f"damaged planning states {path} ({type(e).__name__}: {e}); delete it to collect them again") from None
 
 
 def planning_states(path=DEFAULT_PATH, **collect_kwargs) -> list[PlanningState]:
