@@ -38,7 +38,7 @@ from omegaconf import DictConfig
 
 from bench.branches import KINDS, Pair, execute, make_pairs
 from core import validate
-from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, open_experiment, writable
+from core.jobs import CONF_DIR, MissingModel, UserError, console, guarded, mlflow_run, open_experiment, writable
 from core.rollout import accelerations
 from core.stats import bootstrap
 from planner.gradients import available
@@ -176,7 +176,7 @@ def predict(name: str, pairs: list[Pair], cfg) -> dict | None:
         return {"braking": np.stack([follower_braking(s, p) for p in pairs])}
     try:
         source = load_source(name, cfg.models_dir)
-    except UserError as e:
+    except MissingModel as e:  # not trained yet; a damaged model is the UserError it raises
         log.warning(f"{name}: skipped ({e})")
         return None
     return {"": np.stack([rollout_response(source, p) for p in pairs]),
