@@ -56,6 +56,7 @@ from bench.results_tables import (
     outcome_table,
     outcomes,
     over_trainings,
+    paired_t_merge,
     pct,
     read_ceiling,
     read_episodes,
@@ -161,6 +162,10 @@ def dense(r: Report) -> dict:
                        for (s, m, k), v in beats.items() if v)
     (log.warning if beat else log.info)("results: planner beat the ceiling on %d of %d dense worlds%s", len(beat),
                                         len(worlds), f" ({detail})" if detail else "")
+    paired = {(s, m): paired_t_merge(worlds, [e for (src, _), f in folders.items() if src == s for e in read_episodes(f, m)],
+                                     r.cfg.bootstrap.resamples, r.stream("dense", "paired", s, m)) for s, m in r.dense_rows if m}
+    paired = markdown(["row", "worlds both merged courteously", "t_merge over the ceiling's, mean per world [95% CI]"],
+                      [[f"{s} {m.upper()}", str(v["pairs"]), ci(v, "ratio", ".2f")] for (s, m), v in paired.items()])
     short = markdown(["gradients", *breakdown.OUTCOMES], [
         [s, *(f"{n} ({ok})" for n, ok in breakdown.breakdown(
             [e for (src, _), f in folders.items() if src == s for e in read_episodes(f, "admm")], worlds, sc.b_safe).values())]
@@ -168,7 +173,7 @@ def dense(r: Report) -> dict:
     return {"episodes": p.dense_episodes, "planner_seed": r.cfg.planner_seed, "blind_episodes": p.blind_episodes,
             "blind_seed": job_config("ceiling", []).blind.seed, "b_safe": sc.b_safe,
             "table": "\n".join(dense_table(r.dense_rows)), "beat": len(beat), "worlds": len(worlds),
-            "detail": f": {detail}" if detail else "", "breakdown": "\n".join(short),
+            "detail": f": {detail}" if detail else "", "breakdown": "\n".join(short), "paired": "\n".join(paired),
             "outcomes": "\n".join(f"- {c}: {what}" for c, what in breakdown.OUTCOMES.items())}
 
 

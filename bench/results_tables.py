@@ -60,6 +60,14 @@ def beaten(worlds: list[dict], episodes: list[dict]) -> set[int]:
     return {int(e["seed"]) for e in episodes if e["courteous"] and e["t_merge"] < best[int(e["seed"])]}
 
 
+def paired_t_merge(worlds: list[dict], episodes: list[dict], resamples: int, rng) -> dict:
+    """The episodes' t_merge over the ceiling's on the same world, over the worlds both merged courteously on
+    (stats.paired_ratio: the mean ratio, a bootstrap over those pairs): {ratio, ratio_lo, ratio_hi, pairs}."""
+    best = {int(w["seed"]): w["ceiling_t_merge"] for w in worlds if w["ceiling_courteous"]}
+    pairs = np.array([(e["t_merge"], best[int(e["seed"])]) for e in episodes if e["courteous"] and int(e["seed"]) in best])
+    ratio = stats.paired_ratio(pairs[:, 0], pairs[:, 1], resamples, rng) if len(pairs) else (float("nan"),) * 3
+    return {"ratio": ratio[0], "ratio_lo": ratio[1], "ratio_hi": ratio[2], "pairs": len(pairs)}
+
 def outcomes(per_training: list[list[dict]], resamples: int, rng) -> dict:
     """One table row from the episodes of each training: rates with Wilson intervals, means with bootstrap intervals."""
     eps = [e for t in per_training for e in t]
