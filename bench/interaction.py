@@ -21,7 +21,7 @@ and its choice judge plans by it), is scored per plan (two per pair) against the
   brake_corr  Pearson correlation of predicted and true hardest braking;
   brake_auc   how well it sorts the plans that force a driver (true braking above score.forced) from the rest: the
               probability that a forcing plan is predicted to impose more than a tolerated one (ties half; cv 0.5).
-The `follower` row is what the courteous planner judges a gap by whatever the predictor (planner.mpc.follower_braking):
+The `follower` row is what the courteous planner judges a gap by whatever the predictor (planner.strategy.Rules.follower_braking):
 a nominal IDM driver behind the executed ego plan, on constant-velocity positions; its braking scores, no response.
 
     evaluate-interaction [sources=[cv,analytic,reference]] [states=34] [models_dir=models]
@@ -102,7 +102,7 @@ def reference_response(pair: Pair, draws: int, rng: np.random.Generator):
 
 
 def follower_braking(s, pair: Pair):
-    """The braking (2,) in m/s^2 that the planner's nominal follower (planner.mpc.follower_braking, Settings s) judges
+    """The braking (2,) in m/s^2 that the planner's nominal follower (planner.strategy.Rules.follower_braking, Settings s) judges
     plans A and B to impose, on constant-velocity positions of the others, the ego's speed from its executed xy."""
     from planner import mpc
 
@@ -112,7 +112,7 @@ def follower_braking(s, pair: Pair):
     for ego in pair.ego:
         x = np.concatenate([pair.history[-1:, 0, 0], ego[:, 0]])
         Z = np.stack([ego[:, 0], ego[:, 1], np.zeros(T_p), np.diff(x) / dt], 1).ravel()
-        out.append(mpc.follower_braking(s, mpc.Observation(np.zeros(4), np.zeros(2), pair.history), Z, cv))
+        out.append(s.strategy.follower_braking(s, mpc.Observation(np.zeros(4), np.zeros(2), pair.history), Z, cv))
     return np.array(out)
 
 

@@ -39,7 +39,7 @@ def settings(scenario: str, overrides: tuple = ()) -> mpc.Settings:
 @lru_cache(maxsize=None)
 def solver_step(overrides: tuple = ()):
     """The step the `planner` command's solver would run with these overrides (conf/solver/; by default
-    planner.mpc.mpc_step with the Z-step bound), called as step(settings(scenario), obs, source, warm); the same on every
+    planner.step.mpc_step with the Z-step bound), called as step(settings(scenario), obs, source, warm); the same on every
     scenario (conf/solver/ and conf/zstep/ read no scenario value)."""
     return build(planner_config("two_lane", overrides).solver.step)
 

@@ -4,7 +4,7 @@
 maps a dotted key to a rule; a rule's `optional` lets the key be absent (keys only some config-group options have).
 """
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -133,7 +133,7 @@ class Range:
     nullable: bool = False
 
     def ok(self, v):
-        return isinstance(v, list) and len(v) == 2 and all(_number(x) and math.isfinite(x) for x in v) \
+        return isinstance(v, (list, tuple)) and len(v) == 2 and all(_number(x) and math.isfinite(x) for x in v) \
             and (v[0] < v[1] if self.strict else v[0] <= v[1]) and all(_within(x, self.lo, self.hi, False, False) for x in v)
 
     def allowed(self):
@@ -208,6 +208,22 @@ def _value(cfg, key):
     return OmegaConf.to_container(v, resolve=True) if isinstance(v, (DictConfig, ListConfig)) else v
 
 
+def rule(r):
+    """A dataclass field whose value must obey rule r (check_fields): the constraint sits on the field it constrains."""
+    return field(metadata={"rule": r})
+
+
+def check_fields(obj, prefix: str) -> None:
+    """Raise one UserError 'prefix.key=value: must be ...' for the first field of dataclass `obj` whose value breaks the
+    rule its metadata names (rule())."""
+    for f in fields(obj):
+        r, v = f.metadata.get("rule"), getattr(obj, f.name)
+        if r is None or (v is None and r.nullable):
+            continue
+        if not r.ok(v):
+            raise UserError(f"{prefix}.{f.name}={'null' if v is None else v}: must be {r.allowed()}{' or null' if r.nullable else ''}")
+
+
 def check(cfg: DictConfig, schema) -> None:
     """Raise one UserError 'key=value: must be ...' for the first key of `schema` (a name in SCHEMAS or a dict) out of range."""
     for key, rule in (SCHEMAS[schema] if isinstance(schema, str) else schema).items():
@@ -230,7 +246,6 @@ NONNEG = Real(0)
 PROB = Real(0, 1)
 SEED = Int(0, SEED_MAX)
 N_JOBS = Int(-1, but=(0,))  # joblib: -1 every core, never 0
-PAIR = Range(strict=True)
 COST = ("lambda_div", "lambda_v", "lambda_delta", "lambda_a", "lambda_ddelta", "lambda_da")
 # the predictors that load a trained model of their own from models_dir (conf/predictor/): the ones `distill` trains
 TRAINED_PREDICTORS = tuple(n for n in options("predictor")
@@ -324,14 +339,12 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
     "T_obs": Int(2, 21), "n_slots": Int(1), "plots": Bool(), "record_dir": Text(nullable=True), "tolerate_crashes": Bool(),
-    "mpc.T_p": Int(1), "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
-    "mpc.r": POS, "mpc.r_i": POS, "mpc.eps": NONNEG, "mpc.stretch": Real(1), "mpc.shape": Real(2), **{f"mpc.{k}_box": PAIR for k in ("delta", "a", "psi", "v")},
-    "mpc.y_margin": NONNEG, "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
+    # mpc: the values planner.mpc.Settings and planner.strategy check on their fields, but for the nodes they take whole
+    "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
+    "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
     "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),
     "mpc.osqp.adaptive_rho_interval": Int(0, optional=True),
     "zstep.settings.reuse_radius": Real(0, optional=True),
-    "mpc.check_tol": NONNEG, "mpc.check_steps": Int(0), "mpc.brake": Real(hi=0, hi_open=True),
-    "mpc.check_relative": Bool(), "mpc.progress": NONNEG, "mpc.core": OneOf(("compiled", "reference")),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (
         "trust_radius", "min_radius", "max_radius", "tol", "slack_penalty", "slack_tol", "opt_tol", "viol_ineq_tol", "mu0",

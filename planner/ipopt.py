@@ -18,7 +18,7 @@ from core.rollout import SLOTS, b_i, rollout
 from distill.analytic import Analytic
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner import admm, cost, mpc
+from planner import admm, cost, mpc, safeguard
 from planner.gradients import Autodiff, ExactLocal
 
 SUPPORTED = "cv, analytic, student"
@@ -132,8 +132,8 @@ def parameters(net: NLP, s: mpc.Settings, obs: mpc.Observation, dyn):
 def ipopt_step(s: mpc.Settings, obs: mpc.Observation, source, warm, options: dict) -> mpc.StepResult:
     """One MPC step by IPOPT from the start ADMM uses (mpc.start_point), with mpc_step's safety check and fallbacks;
     options are IPOPT's own (conf/solver/ipopt.yaml)."""
-    if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev))):
-        return mpc.fallback(s, obs, source, warm, "non-finite observation")
+    if not safeguard.observed(obs):
+        return safeguard.fallback(s, obs, source, warm, "non-finite observation")
     net = nlp(source, s.T_p, len(obs.history), s.R, s.stretch, s.shape, s.weights, tuple(sorted(options.items())))
     start, dyn = mpc.start_point(s, obs, warm)
     lo, hi = mpc.state_box(s)
@@ -146,15 +146,15 @@ def ipopt_step(s: mpc.Settings, obs: mpc.Observation, source, warm, options: dic
                          ubx=np.concatenate([np.full(s.T_p, s.delta_box[1]), np.full(s.T_p, s.a_box[1]), hi]),
                          lbg=np.zeros(T4 + n_b), ubg=np.concatenate([np.zeros(T4), np.full(n_b, np.inf)]))
     except RuntimeError as e:  # CasADi raises for an evaluation error it cannot hand to IPOPT
-        return mpc.fallback(s, obs, source, warm, f"solver failure ({str(e).splitlines()[0]})")
+        return safeguard.fallback(s, obs, source, warm, f"solver failure ({str(e).splitlines()[0]})")
     stats = net.solver.stats()
     if not stats["success"]:
-        return mpc.fallback(s, obs, source, warm, f"IPOPT: {stats['return_status']}")
+        return safeguard.fallback(s, obs, source, warm, f"IPOPT: {stats['return_status']}")
     x, g = np.asarray(sol["x"]).ravel(), np.asarray(sol["g"]).ravel()
     Delta, alpha, Z = x[:s.T_p], x[s.T_p:2 * s.T_p], x[2 * s.T_p:]
-    b_min = min(mpc.plan_safe(s, obs, source, Delta, alpha)[0], float(g[T4:].min(initial=np.inf)))
-    if not mpc.acceptable(s, obs, source, b_min):
-        return mpc.fallback(s, obs, source, warm, f"unsafe plan (min b_i {b_min:.2f} m^2)")
+    b_min = min(safeguard.plan_safe(s, obs, source, Delta, alpha)[0], float(g[T4:].min(initial=np.inf)))
+    if not safeguard.acceptable(s, obs, source, b_min):
+        return safeguard.fallback(s, obs, source, warm, f"unsafe plan (min b_i {b_min:.2f} m^2)")
     plan = admm.ADMMState(Delta, alpha, Z, np.asarray(sol["lam_g"]).ravel()[:T4])  # lam_g of F = 0 plays ADMM's mu
     return mpc.StepResult(u=np.array([Delta[0], alpha[0]]), plan=plan, J=mpc.J_of(s, obs.u_prev, Delta, alpha, Z),
                           iters=int(stats["iter_count"]), reason=stats["return_status"],

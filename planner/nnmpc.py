@@ -9,7 +9,8 @@ import numpy as np
 from core.rollout import b_i, ego_xy
 from data import bicycle
 from planner import admm
-from planner.mpc import Observation, Settings, StepResult, costs, fallback
+from planner.mpc import Observation, Settings, StepResult, costs
+from planner.safeguard import fallback, observed
 
 
 def lateral_path(x, x0, y0, y1, L):
@@ -47,7 +48,7 @@ def candidates(s: Settings, z0, lengths, accels):
 def nnmpc_step(s: Settings, obs: Observation, source, warm, lengths, accels) -> StepResult:
     """One NNMPC step over lane-change lengths (m) and accelerations (m/s^2): the safe candidate of least J, or the fallback
     when none is safe."""
-    if not (np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0))):
+    if not observed(obs):
         return fallback(s, obs, source, warm, "non-finite observation")
     cands = candidates(s, obs.z0, lengths, accels)
     egos = np.stack([ego_xy(Z, s.T_p) for _, _, Z in cands])

@@ -2,13 +2,10 @@
 closed-loop episode of a method; used by the `planner` command, its batch workers, the benchmarks and the tests."""
 from pathlib import Path
 
-import numpy as np
 from hydra.utils import get_class, get_object
 from omegaconf import DictConfig
 
 from core.jobs import UserError, build, job_config
-from core.rollout import b_i
-from data.drivers import IDMDriver
 from distill import certificate
 from planner import closed_loop, mpc
 from planner.gradients import Recording, WorldModel
@@ -28,23 +25,11 @@ def rho(cfg: DictConfig, scenario) -> float:
 
 
 def settings(cfg: DictConfig, scenario) -> mpc.Settings:
-    """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters, and its nominal
-    follower built from the parameters cfg.mpc.follower sets."""
-    follower = None if cfg.mpc.follower is None else nominal_follower(cfg.mpc.follower)
+    """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters; each value checked
+    where it is defined (planner.mpc.Settings, planner.strategy), one UserError naming the key."""
     # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
     return build(cfg.mpc, _partial_=True)(y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road,
-                                          params=scenario.params, rho=rho(cfg, scenario), follower=follower)
-
-
-def nominal_follower(params) -> IDMDriver:
-    """The IDMDriver with `params` (name -> SI value) over its defaults; one UserError naming mpc.follower otherwise."""
-    known = set(IDMDriver.__dataclass_fields__)
-    for key, value in params.items():
-        if key not in known:
-            raise UserError(f"mpc.follower.{key}: IDMDriver has no such parameter (it has {', '.join(sorted(known))})")
-        if not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
-            raise UserError(f"mpc.follower.{key}={value}: must be a finite number >= 0")
-    return IDMDriver(**params)
+                                          params=scenario.params, rho=rho(cfg, scenario))
 
 
 def setup(cfg: DictConfig):
@@ -64,33 +49,7 @@ def setup(cfg: DictConfig):
                         "themselves: use world=reactive")
     source = build(cfg.gradients)
     check_window(cfg, source.predictor)
-    s = settings(cfg, scenario)
-    check_starts(s)
-    check_shape(s)
-    return scenario, source, s
-
-
-def check_starts(s: mpc.Settings) -> None:
-    """One UserError unless every mpc.starts entry is [offset m, a m/s^2, v m/s or null] with finite numbers."""
-    for start in s.starts:
-        ok = len(start) == 3 and all(isinstance(x, (int, float)) and np.isfinite(x) for x in start[:2])
-        if not ok or not (start[2] is None or (isinstance(start[2], (int, float)) and start[2] >= 0)):
-            raise UserError(f"mpc.starts: {list(start)} must be [offset m, a m/s^2, v m/s >= 0 or null]")
-
-
-def check_shape(s: mpc.Settings) -> None:
-    """One UserError unless a superellipse safety shape (mpc.shape > 2) covers two of the road's bodies, the ego's
-    yawed anywhere within psi_box: the corner of their bounding boxes' sum must lie inside it. The ellipse (shape 2) is
-    the paper's circle or the scenario's own and is left to its config."""
-    if s.shape == 2:
-        return
-    half_l, half_w, psi = s.road.car_length / 2, s.road.car_width / 2, max(abs(a) for a in s.psi_box)
-    dx = half_l + half_l * np.cos(psi) + half_w * np.sin(psi)
-    dy = half_w + half_l * np.sin(psi) + half_w * np.cos(psi)
-    if b_i(np.array([[[0.0, 0.0], [dx, dy]]]), s.R, s.stretch, s.shape)[0, 0] > 0:
-        raise UserError(f"mpc.shape={s.shape:g} with R={s.R:g} m and mpc.stretch={s.stretch:g} does not cover two "
-                        f"{s.road.car_length:g} x {s.road.car_width:g} m bodies with the ego yawed up to {psi:g} rad "
-                        f"(mpc.psi_box): raise mpc.r or mpc.stretch, or narrow mpc.psi_box")
+    return scenario, source, settings(cfg, scenario)
 
 
 def check_window(cfg: DictConfig, predictor) -> None:

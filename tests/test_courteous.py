@@ -1,5 +1,6 @@
-"""mpc=courteous: the repair of plans that miss the check, the choice among several solves, and its config; the courtesy
-rows' values and derivatives are checked in test_compiled_core."""
+"""mpc=courteous: the safeguard's repair of plans that miss the check, the Rules strategy's starts and choice, and its
+config; the courtesy rows' values and derivatives are checked in test_compiled_core."""
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -8,9 +9,10 @@ import pytest
 from conftest import compose_cfg
 from core.jobs import UserError
 from core.rollout import b_i
-from planner import admm, mpc
+from planner import admm, mpc, safeguard, step
 from planner.safety import Safety
 from planner.setup import make
+from planner.strategy import Paper, Start
 
 
 @pytest.fixture(scope="module")
@@ -28,16 +30,16 @@ def beside():
 def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_least_change(beside, steer):
     s, source, obs = beside
     Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
-    b_min, Z = mpc.plan_safe(s, obs, source, Delta, alpha)
+    b_min, Z = safeguard.plan_safe(s, obs, source, Delta, alpha)
     assert -0.5 < b_min < -s.check_tol  # 2.1 m across: 0.5 m^2 is 12 cm
-    fixed, b_fixed, _ = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
+    fixed, b_fixed, _ = safeguard.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
                                   admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
-    assert b_fixed == pytest.approx(mpc.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
+    assert b_fixed == pytest.approx(safeguard.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
     assert b_fixed >= s.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
     assert 0.0 < np.abs(fixed.Delta - Delta).max() < 0.15 and fixed.Delta[0] < steer  # steered a little less
     safe = np.full(s.T_p, -0.1)  # steering away: a plan that passes is left alone
-    b_safe, Z = mpc.plan_safe(s, obs, source, safe, alpha)
-    out = mpc.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape), admm.ADMMState(safe, alpha, Z, 0 * Z))
+    b_safe, Z = safeguard.plan_safe(s, obs, source, safe, alpha)
+    out = safeguard.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape), admm.ADMMState(safe, alpha, Z, 0 * Z))
     assert out[1] == pytest.approx(b_safe, abs=1e-6) and np.allclose(out[0].Delta, safe, atol=1e-6)
 
 
@@ -48,23 +50,32 @@ def test_the_choice_puts_predicted_excess_braking_first_then_a_merge_then_the_st
         Z = np.zeros(4 * s.T_p)
         Z[-3] = y_end
         return mpc.StepResult(np.zeros(2), admm.ADMMState(None, None, Z, None), J, 1, "converged", 0.0, 0.0, 0.0, "",
-                              braking=braking), rank
+                              braking=braking, values=values), rank
+
+    values = np.tile([[0.0, 0.0], [-200.0, 0.0]], (s.T_p, 2, 1))  # nobody behind the ego: the follower brakes for none
 
     merge, wait = 4.0, 1.8  # y_ref = 4 m: in the target lane; leaning in, still in the ego's lane
     forcing, waiting, gentle = plan(1.0, 9.0, merge), plan(5.0, 0.5, wait, 1), plan(4.0, 2.9, merge)  # braking m/s^2
-    pick = lambda *named: mpc.choose(s, [(n, *p) for n, p in named], wait)[0]
+    obs = mpc.Observation(np.array([0.0, wait, 0.0, 5.0]), np.zeros(2), np.tile(values[:1], (8, 1, 1)))
+    pick = lambda *named: s.strategy.choose(s, obs, [(Start(n, None, s, rank), r) for n, (r, rank) in named])[0].name
     assert pick(("force", forcing), ("wait", waiting)) == "wait"
     assert pick(("wait", waiting), ("gentle", gentle)) == "gentle"  # both under b_courtesy: the merge
     assert pick(("force", forcing), ("worse", plan(0.5, 9.5, merge))) == "force"
     assert pick(("merge", plan(9.0, 0.0, merge)), ("cheaper merge", plan(8.0, 0.0, merge))) == "cheaper merge"
     # without a merge the first start's plan, not the cheapest: the shifted plan's J pulls towards the gap
-    shifted = plan(1.0, 0.0, 1.9, mpc.shifted_rank(s))
+    shifted = plan(1.0, 0.0, 1.9, s.strategy.candidates(s, obs, None, None)[0].rank)
     assert pick(("shifted", shifted), ("lean", plan(7.0, 0.0, wait, 1)), ("lane", plan(6.0, 0.0, 0.0, 2))) == "lean"
     # the lean start's plan lost (failed, or imposes braking): the shifted plan leans on instead of dropping back
     assert pick(("shifted", shifted), ("lane", plan(6.0, 0.0, 0.0, 2))) == "shifted"
     assert pick(("only", forcing)) == "only"
-    cv_forcing = plan(1.0, 0.0, merge)[0]._replace(follower_braking=6.0), 0  # cv predicts no braking; the follower would
-    assert pick(("force", cv_forcing), ("wait", waiting)) == "wait"
+    # cv predicts no braking, but the nominal follower, a car 2 m behind the plan's end in the lane it enters, would
+    car = lambda k: [[0.0, wait], [-10.0 + 5.0 * s.params.dt * k, 4.0], [-200.0, 0.0], [-200.0, 0.0]]
+    seen = obs._replace(history=np.array([car(k) for k in range(-7, 1)]))
+    forced = plan(1.0, 0.0, merge)[0]._replace(values=np.array([car(k) for k in range(1, s.T_p + 1)]))
+    held = waiting[0]._replace(values=forced.values)
+    chosen = s.strategy.choose(s, seen, [(Start("force", None, s, 0), forced), (Start("wait", None, s, 1), held)])
+    assert chosen[0].name == "wait" and chosen[1].follower_braking == 0.0
+    assert s.strategy.follower_braking(s, seen, forced.plan.Z, forced.values) > 9.0
 
 
 def _idm(v, gap, v_lead, v0=7.0, T=0.4, s0=1.2, a_max=2.0, b=2.0, delta=4.0):
@@ -89,28 +100,29 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
     # the nominal follower of mpc=courteous: IDM with the cautious end of the dense drivers' headway and gap
     want = max(0.0, max(-_idm(6.0, 5.0 * dt * k - (behind + 6.0 * dt * k) - 3.6, 5.0, T=0.5, s0=1.6) for k in T))
     assert want > 4.0  # closing in at 1 m/s from 2.4 m: a forced merge by IDM, which cv predicts as no braking at all
-    assert mpc.follower_braking(s, obs, Z, values) == pytest.approx(want, rel=1e-9)
+    assert s.strategy.follower_braking(s, obs, Z, values) == pytest.approx(want, rel=1e-9)
     in_lane = Z.reshape(-1, 4).copy()
     in_lane[:, 1] = 1.8  # the same plan leaning, not entering: nobody follows it
-    assert mpc.follower_braking(s, obs, in_lane.ravel(), values) == 0.0
-    assert mpc.follower_braking(replace(s, follower=None), obs, Z, values) == 0.0
+    assert s.strategy.follower_braking(s, obs, in_lane.ravel(), values) == 0.0
+    assert replace(s.strategy, follower=None).follower_braking(s, obs, Z, values) == 0.0
     leaving = values.copy()
     leaving[:, 1, 1] = 1.9  # predicted out of the lane already; last seen in the lane the plan enters, so it still counts
-    assert mpc.follower_braking(s, obs, Z, leaving) == pytest.approx(want, rel=1e-9)  # (the world has a car changing
+    assert s.strategy.follower_braking(s, obs, Z, leaving) == pytest.approx(want, rel=1e-9)  # (the world has a car changing
     # lanes follow the leaders of both)
     inside = obs._replace(z0=np.array([0.0, 2.1, 0.0, 5.0]))  # halfway in: the lane it enters is its own now
-    assert mpc.follower_braking(s, inside, Z, values) == pytest.approx(want, rel=1e-9)
-    assert make("two_lane", ["gradients=cv"])[2].follower is None  # the paper's step judges no gap
+    assert s.strategy.follower_braking(s, inside, Z, values) == pytest.approx(want, rel=1e-9)
+    assert isinstance(make("two_lane", ["gradients=cv"])[2].strategy, Paper)  # the paper's step judges no gap
 
 
 def test_the_nominal_follower_is_no_more_tolerant_than_any_dense_driver_on_headway_and_gap():
     ranges = compose_cfg("planner", ["scenario=dense"]).scenario.driver_ranges
-    follower = make("dense", ["gradients=cv", "mpc=courteous"])[2].follower
+    follower = make("dense", ["gradients=cv", "mpc=courteous"])[2].strategy.driver
     assert (follower.T, follower.s0) == (max(ranges.T), max(ranges.s0))
 
 
-@pytest.mark.parametrize("override,message", [("+mpc.follower.Tau=1", r"^mpc.follower.Tau: IDMDriver has no such "),
-                                              ("mpc.follower.T=nan", r"^mpc.follower.T=nan: must be a finite number")])
+@pytest.mark.parametrize("override,message", [
+    ("+mpc.strategy.follower.Tau=1", r"^mpc.strategy.follower.Tau: IDMDriver has no such "),
+    ("mpc.strategy.follower.T=nan", r"^mpc.strategy.follower.T=nan: must be a finite number")])
 def test_a_bad_nominal_follower_parameter_is_named_in_one_line(override, message):
     with pytest.raises(UserError, match=message):
         make("dense", ["gradients=cv", "mpc=courteous", override])
@@ -136,19 +148,19 @@ def _stream(s, back_x, back_v, back_a, front_v=5.0):
 def test_a_lean_beside_a_car_seen_yielding_keeps_ahead_of_it_and_otherwise_keeps_its_speed(beside, back_x, back_v, back_a, v_lean):
     s = beside[0]
     obs = _stream(s, back_x, back_v, back_a)
-    starts = {name.split(",")[0]: aim.v_ref for name, _, aim in mpc.lane_starts(s, obs)}
-    own = s.starts[0][2]
+    starts = {st.name.split(",")[0]: st.aim.v_ref for st in s.strategy.candidates(s, obs, None, None)[1:]}
+    own = s.strategy.starts[0][2]
     assert starts == {"y +1.9 m": pytest.approx(own if v_lean is None else v_lean, abs=1e-9), "y +0.0 m": s.v_ref}
 
 
 def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(beside):
     s, source, obs = beside
-    step = mpc.mpc_step(s, obs, source, None, _sqp())
-    assert step.fallback == "" and ", from " in step.reason and step.c_min >= 0.0  # cv predicts no braking at all
-    assert step.braking == 0.0
+    result = step.mpc_step(s, obs, source, None, _sqp())
+    assert result.fallback == "" and ", from " in result.reason and result.c_min >= 0.0  # cv predicts no braking at all
+    assert result.braking == 0.0
     paper = make("two_lane", ["gradients=cv"])[2]
-    assert paper.b_courtesy is None and paper.repair_iters == 0 and not paper.starts
-    assert "from" not in mpc.mpc_step(paper, obs, source, None, _sqp()).reason
+    assert paper.b_courtesy is None and paper.repair_iters == 0 and len(paper.strategy.candidates(paper, obs, None, None)) == 1
+    assert "from" not in step.mpc_step(paper, obs, source, None, _sqp()).reason
 
 
 def _sqp():
@@ -208,7 +220,23 @@ def test_a_superellipse_that_does_not_cover_the_bodies_is_one_line_and_the_court
         make("dense", ["gradients=cv", "mpc=courteous", "mpc.psi_box=[-0.4,0.4]"])
 
 
-@pytest.mark.parametrize("starts", ["[[1.6,0.0]]", "[[1.8,-1.0,-1.0]]"])
+@pytest.mark.parametrize("starts", ["[[1.6,0.0]]", "[[1.8,-1.0,-1.0]]", "[[1.8,true,0.0]]", "[[nan,0.0,1.0]]"])
 def test_a_start_that_is_not_offset_acceleration_speed_is_one_line(starts):
-    with pytest.raises(UserError, match=r"^mpc.starts: \[.*\] must be \[offset m, a m/s\^2, v m/s >= 0 or null\]$"):
-        make("dense", ["gradients=cv", "mpc=courteous", f"mpc.starts={starts}"])
+    with pytest.raises(UserError, match=r"^mpc.strategy.starts: \[.*\] must be \[offset m, a m/s\^2, v m/s >= 0 or null\]$"):
+        make("dense", ["gradients=cv", "mpc=courteous", f"mpc.strategy.starts={starts}"])
+
+
+@pytest.mark.parametrize("override,message", [
+    ("mpc.repair_iters=-1", "mpc.repair_iters=-1: must be an integer >= 0"),
+    ("mpc.b_courtesy=-2", "mpc.b_courtesy=-2: must be a number > 0 or null"),
+    ("mpc.b_courtesy=nan", "mpc.b_courtesy=nan: must be a number > 0 or null"),
+    ("mpc.repair_margin=-0.1", "mpc.repair_margin=-0.1: must be a number >= 0"),
+    ("mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"),
+    ("mpc.check_relative=1", "mpc.check_relative=1: must be true or false"),
+    ("mpc.core=fast", "mpc.core=fast: must be one of compiled, reference"),
+    ("mpc.strategy.progress=-1", "mpc.strategy.progress=-1: must be a number >= 0"),
+    ("mpc.strategy.keep_ahead.near=nan", "mpc.strategy.keep_ahead.near=nan: must be a number >= 0"),
+])
+def test_every_bad_value_of_the_step_is_one_line_naming_its_key(override, message):
+    with pytest.raises(UserError, match="^" + re.escape(message) + "$"):
+        make("dense", ["gradients=cv", "mpc=courteous", override])

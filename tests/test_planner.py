@@ -16,7 +16,7 @@ from core.rollout import ego_xy
 from data import perception
 from data.world import backfill
 from distill import models as distill_models
-from planner import admm, cli, cost, dynamics, mpc
+from planner import admm, cli, cost, dynamics, mpc, step
 from planner.gradients import Autodiff, CentralDifferences
 from planner.qp import QP
 from planner.safety import Safety
@@ -112,7 +112,7 @@ def test_nan_observation_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
     bad = obs._replace(history=np.where(np.arange(obs.history.size).reshape(obs.history.shape) == 7, np.nan, obs.history))
-    result = mpc.mpc_step(s, bad, cv, None, sqp)
+    result = step.mpc_step(s, bad, cv, None, sqp)
     assert "non-finite observation" in result.fallback and np.all(np.isfinite(result.u))
 
 
@@ -127,7 +127,7 @@ def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
         return result
 
     monkeypatch.setattr(osqp.OSQP, "solve", failing)
-    result = mpc.mpc_step(dataclasses.replace(s, core="reference"), obs, cv, None, sqp)
+    result = step.mpc_step(dataclasses.replace(s, core="reference"), obs, cv, None, sqp)
     assert "solver failure (OSQP primal infeasible)" in result.fallback and np.all(np.isfinite(result.u))
 
 
@@ -135,7 +135,7 @@ def test_daqp_failure_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
     crossed = dataclasses.replace(s, core="compiled", delta_box=(0.1, -0.1))  # lower above upper: DAQP refuses the box QP
-    result = mpc.mpc_step(crossed, obs, cv, None, sqp)
+    result = step.mpc_step(crossed, obs, cv, None, sqp)
     assert "solver failure (DAQP exit flag -" in result.fallback and np.all(np.isfinite(result.u))
 
 

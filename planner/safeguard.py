@@ -1,0 +1,90 @@
+"""The safeguard every solver's plan passes before it is applied (ADMM, IPOPT and NNMPC share it): the check of its
+nonlinear rollout against the predictor, the repair of a plan that misses it (planner.repair), and the fallback when
+nothing passes (the shifted previous plan if the predictor still finds it safe, else braking in lane)."""
+import numpy as np
+from scipy import linalg
+
+from core.rollout import accelerations, b_i, ego_xy
+from planner import admm, jit_rollout, repair
+from planner.mpc import J_of, Observation, Settings, StepResult, brake_plan, costs, shift, simulate
+
+
+def rollout(s: Settings, obs: Observation, source, Delta, alpha):
+    """The nonlinear rollout Z of (Delta, alpha) and the predictor's values (T_p, SLOTS, 2) under it."""
+    Z = simulate(obs.z0, Delta, alpha, s.params)
+    ego = ego_xy(Z, s.T_p)
+    compiled = jit_rollout.compiled_jacobian(source) if s.core == "compiled" else None  # cv, student: values and J in ~0.1 ms
+    return Z, compiled(obs.history, ego)[0] if compiled else source.values(obs.history, ego[None])[0]
+
+
+def checked_b(s: Settings, values) -> float:
+    """min b_i (m^2) over the first check_steps of a rollout's predictor values (T_p, SLOTS, 2)."""
+    return float(b_i(values, s.R, s.stretch, s.shape)[:, :s.check_steps].min(initial=np.inf))
+
+
+def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
+    """min b_i (m^2) over the first check_steps of the nonlinear rollout of (Delta, alpha) against the predictor's reaction."""
+    Z, values = rollout(s, obs, source, Delta, alpha)
+    return checked_b(s, values), Z
+
+
+def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
+    """Whether a plan whose checked rollout has min b_i = b_min (m^2) may be applied: b_min >= -check_tol, or with
+    check_relative no worse than braking in lane (its b_min, capped at 0, minus check_tol). Beside a car that stops to
+    let a straddling ego in, every plan breaks b_i >= 0 for a while; judged against zero they all fail, and braking to a
+    stop there waits for a car that waits for the ego."""
+    if b_min >= -s.check_tol:
+        return True
+    return s.check_relative and b_min >= min(0.0, plan_safe(s, obs, source, *brake_plan(s, obs.z0))[0]) - s.check_tol
+
+
+def imposed(s: Settings, obs: Observation, values) -> float:
+    """The hardest braking (m/s^2, >= 0) the predictor expects of another car, from its values (T_p, SLOTS, 2) over a
+    plan's rollout."""
+    return float(max(0.0, -accelerations(values, obs.history, s.params.dt).min(initial=0.0)))
+
+
+def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):
+    """The plan st with its controls repaired (planner.repair) until its checked rollout is acceptable, at most
+    s.repair_iters steps, with its min b_i (m^2) and the predictor's values under it; None when no repair passes."""
+    Phi_1, Phi_2, _ = costs(s, obs.u_prev)
+    W = linalg.block_diag(Phi_1.P, Phi_2.P)
+    Delta, alpha = st.Delta, st.alpha
+    for _ in range(s.repair_iters):
+        Z = simulate(obs.z0, Delta, alpha, s.params)
+        b, Jb = safety.linearize(Z)
+        Delta, alpha = repair.repair_step(obs.z0, Delta, alpha, Z, b[:safety.n_b], Jb[:safety.n_b], s.params, W,
+                                          s.delta_box, s.a_box, s.check_steps, s.repair_margin, s.osqp)
+        Z, values = rollout(s, obs, source, Delta, alpha)
+        b_min = checked_b(s, values)
+        if acceptable(s, obs, source, b_min):
+            return st._replace(Delta=Delta, alpha=alpha, Z=Z, zstate=None), b_min, values
+    return None
+
+
+def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResult:
+    """The shifted previous plan if the predictor still finds it safe, else braking in the current lane.
+
+    Without a finite ego state there is nothing to steer by: the shifted plan is applied unchecked, or straight braking.
+    """
+    z_ok, seen = np.all(np.isfinite(obs.z0)), np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.history))
+    if warm is not None:
+        prev = shift(warm)._replace(zstate=None)
+        b_min, Z = plan_safe(s, obs, source, prev.Delta, prev.alpha) if seen else (np.nan, prev.Z)
+        if not seen or acceptable(s, obs, source, b_min):
+            return StepResult(u=np.array([prev.Delta[0], prev.alpha[0]]), plan=prev._replace(Z=Z) if z_ok else None,
+                              J=J_of(s, obs.u_prev, prev.Delta, prev.alpha, Z), iters=0, reason="fallback", F_norm=np.nan,
+                              b_min=b_min, slack=np.nan, fallback=f"{why}; shifted previous plan")
+    if not z_ok:
+        return StepResult(u=np.array([0.0, s.brake]), plan=None, J=np.nan, iters=0, reason="fallback", F_norm=np.nan,
+                          b_min=np.nan, slack=np.nan, fallback=f"{why}; braking straight")
+    Delta, alpha = brake_plan(s, obs.z0)
+    Z = simulate(obs.z0, Delta, alpha, s.params)
+    plan = admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p))
+    return StepResult(u=np.array([Delta[0], alpha[0]]), plan=plan, J=J_of(s, obs.u_prev, Delta, alpha, Z), iters=0,
+                      reason="fallback", F_norm=np.nan, b_min=np.nan, slack=np.nan, fallback=f"{why}; braking in lane")
+
+
+def observed(obs: Observation) -> bool:
+    """Whether the observation is finite throughout (ego state, last input, history): a step on anything else falls back."""
+    return bool(np.all(np.isfinite(obs.history)) and np.all(np.isfinite(obs.z0)) and np.all(np.isfinite(obs.u_prev)))

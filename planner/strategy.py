@@ -1,0 +1,295 @@
+"""Strategies: which plans a step solves from and which solved plan it applies. A strategy has two methods,
+`candidates(s, obs, warm, source) -> [Start]` and `choose(s, obs, plans) -> (Start, StepResult)` over the plans that passed the
+safeguard; it is the `mpc.strategy` node of the `planner` config.
+
+- `Paper`: Algorithm 1 as published, one solve from the shifted previous plan.
+- `Rules` (mpc=courteous, the engineered baseline): several solves from plans that hold the lane, two hand-written
+  behaviour rules (a nominal IDM follower that judges the gap a plan leaves, and `KeepAhead`, which reads a yielding
+  driver off the history) and a ranked choice.
+- `Interactive` (mpc=interactive): no behaviour rule; generic candidate plans judged by the predictor's rollout alone.
+"""
+from dataclasses import dataclass, replace
+from functools import cached_property
+from typing import NamedTuple
+
+import numpy as np
+
+from core.jobs import UserError
+from core.rollout import accelerations, b_i
+from core.validate import Int, ListOf, Real, check_fields, rule
+from data import bicycle
+from data.drivers import IDMDriver
+from planner import admm
+from planner.mpc import J_of, Observation, Settings, lane_plan, planned, simulate, start_point
+
+NONNEG = Real(0)
+
+
+class Start(NamedTuple):
+    """One solve of a step: its name, where ADMM starts, the settings it solves with (the scenario's, or with y_ref and
+    v_ref moved; None: no solve, the plan is offered as it is to the safeguard's check) and its rank in the choice
+    (lower first)."""
+
+    name: str
+    plan: admm.ADMMState
+    aim: Settings | None
+    rank: float
+
+
+@dataclass(frozen=True)
+class Paper:
+    """Algorithm 1 as published: one ADMM solve from the shifted previous plan (cold: zero inputs), applied as it is."""
+
+    def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
+        """The shifted previous plan."""
+        return [Start("shifted", start_point(s, obs, warm)[0], s, 0.0)]
+
+    def choose(self, s: Settings, obs: Observation, plans):
+        """The one plan."""
+        return plans[0]
+
+
+@dataclass(frozen=True)
+class KeepAhead:
+    """When the nearest target-lane car behind the ego (within `near` m) is seen slowing for it, the lean starts aim at
+    that car's speed plus dv instead of their own v, so a driver who yields to the nudge is not overtaken by it (SI)."""
+
+    near: float  # m: how far behind the ego's centre that car's centre may be
+    dv: float  # m/s: kept above its speed
+    slowing: float  # m/s^2: it counts as slowing once it decelerates harder than this over the last observed steps
+    slower: float  # m/s: ... or drives this much slower than the target-lane car ahead of the ego
+
+    def __post_init__(self):
+        for key in ("near", "dv", "slowing", "slower"):
+            if not NONNEG.ok(getattr(self, key)):
+                raise UserError(f"mpc.strategy.keep_ahead.{key}={getattr(self, key)}: must be {NONNEG.allowed()}")
+
+    def speed(self, s: Settings, history):
+        """The speed (m/s) of the nearest target-lane car behind the ego, within `near`, when the observed history
+        (T_obs, SLOTS, 2) shows it slowing for the ego; None when there is none, or it is not slowing."""
+        if len(history) < 3:  # no acceleration to read
+            return None
+        dt = s.params.dt
+        x, y = history[-1, :, 0], history[-1, :, 1]
+        v = (history[-1, :, 0] - history[-2, :, 0]) / dt
+        in_target = s.road.lane_of(y) == s.road.lane_of(s.y_ref)
+        in_target[0] = False
+        behind = np.flatnonzero(in_target & (x <= x[0]) & (x >= x[0] - self.near))
+        if len(behind) == 0:
+            return None
+        b = behind[np.argmax(x[behind])]
+        decel = -(history[-1, b, 0] - 2 * history[-2, b, 0] + history[-3, b, 0]) / dt**2
+        ahead = np.flatnonzero(in_target & (x > x[0]))
+        lag = v[ahead[np.argmin(x[ahead])]] - v[b] if len(ahead) else 0.0
+        return float(v[b]) if decel > self.slowing or lag > self.slower else None
+
+
+@dataclass(frozen=True)
+class Rules:
+    """mpc=courteous's strategy: besides the shifted plan, ADMM solves from holding the lane and aims off it (`starts`,
+    each [offset m, a m/s^2, v m/s or None: v_ref]); a lean beside a car seen yielding keeps ahead of it (`keep_ahead`);
+    the plan applied has the least braking above b_courtesy, predicted or the nominal `follower`'s, then merges by the
+    lowest J, else waits as the first start says."""
+
+    starts: tuple
+    progress: float = rule(NONNEG)  # m: a plan that ends this much nearer y_ref than the ego is now, or in the target lane, merges
+    follower: dict | None  # a nominal IDM driver's parameters that differ from IDMDriver's defaults; None: none
+    keep_ahead: KeepAhead | None  # None: the lean starts keep their own v
+
+    def __post_init__(self):
+        check_fields(self, "mpc.strategy")
+        for start in self.starts:
+            ok = isinstance(start, (list, tuple)) and len(start) == 3 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in start[:2])
+            if not ok or not (start[2] is None or (isinstance(start[2], (int, float)) and start[2] >= 0)):
+                raise UserError(f"mpc.strategy.starts: {start} must be [offset m, a m/s^2, v m/s >= 0 or null]")
+        known = set(IDMDriver.__dataclass_fields__)
+        for key, value in (self.follower or {}).items():
+            if key not in known:
+                raise UserError(f"mpc.strategy.follower.{key}: IDMDriver has no such parameter (it has {', '.join(sorted(known))})")
+            if not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+                raise UserError(f"mpc.strategy.follower.{key}={value}: must be a finite number >= 0")
+
+    @cached_property
+    def driver(self) -> IDMDriver | None:
+        """The nominal follower, IDMDriver with `follower`'s parameters over its defaults; None without one."""
+        return None if self.follower is None else IDMDriver(**self.follower)
+
+    def candidates(self, s: Settings, obs: Observation, warm, source=None) -> list[Start]:
+        """The shifted plan, ranked after the starts that lean in (offset > 0) and before those that wait in lane (when a
+        lean's plan fails or imposes braking, the shifted plan, leaning already, goes on asking the driver behind instead
+        of dropping back to the lane centre), then one Start per `starts` entry: ADMM aims at y_ref = the current lane's
+        centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.9: lean in, the nudge) and at v_ref = v
+        (None: the scenario's), from holding the lane at a (lane_plan); with keep_ahead a lean beside a car seen
+        yielding aims at that car's speed plus dv. The target lane's pull would draw every start into one basin; these
+        solves stay in theirs (choose)."""
+        out = [Start("shifted", start_point(s, obs, warm)[0], s, sum(float(o) > 0 for o, _, _ in self.starts) + 0.5)]
+        lane_y = s.road.centre(s.road.lane_of(obs.z0[1]))
+        v_yield = self.keep_ahead.speed(s, obs.history) if self.keep_ahead is not None else None
+        for rank, (offset, a, v) in enumerate(self.starts, 1):
+            y, v = lane_y + float(offset) * np.sign(s.y_ref - lane_y), s.v_ref if v is None else float(v)
+            if offset > 0 and v_yield is not None:
+                v = float(np.clip(v_yield + self.keep_ahead.dv, *s.v_box))
+            out.append(Start(f"y {y:+.1f} m, v {v:.1f} m/s", planned(s, obs.z0, *lane_plan(s, obs.z0, a)),
+                             replace(s, y_ref=y, v_ref=v), rank))
+        return out
+
+    def follower_braking(self, s: Settings, obs: Observation, Z, values) -> float:
+        """The hardest braking (m/s^2, >= 0) that the nominal follower would need behind the ego's plan Z (4T_p,), for
+        each other car behind the ego in the plan's lane at a step: there by the predictor's values (T_p, SLOTS, 2), or
+        last seen there (the world has a car changing lanes follow the leaders of both); 0 without a follower. Constant
+        velocity predicts no braking; this judges the gap a plan leaves, whoever predicts the positions."""
+        if self.driver is None:
+            return 0.0
+        ego = Z.reshape(-1, 4)
+        x = np.concatenate([obs.history[-1:, 1:, 0], values[:, 1:, 0]])  # (T_p + 1, N), the last observed step first
+        v = np.diff(x, axis=0) / s.params.dt  # (T_p, N): along the road, as IDM follows
+        lane = s.road.lane_of(ego[:, 1])[:, None]
+        there = (s.road.lane_of(values[:, 1:, 1]) == lane) | (s.road.lane_of(obs.history[-1, 1:, 1]) == lane)
+        behind = there & (values[:, 1:, 0] < ego[:, :1])
+        a = [self.driver.acceleration(v[k, i], ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, ego[k, 3])
+             for k, i in zip(*np.nonzero(behind))]
+        return float(max(0.0, -min(a, default=0.0)))
+
+    def choose(self, s: Settings, obs: Observation, plans):
+        """Among solved (Start, StepResult), each given its follower's braking: the least braking above b_courtesy
+        (m/s^2), predicted or the follower's (without courtesy rows, b_safe is not the planner's to judge: none), then a
+        merge (a plan that ends in the target lane, or `progress` nearer y_ref than the ego) by the lowest cost J;
+        without one, the lowest rank, so an ego that cannot merge yet waits as the first start says instead of pressing
+        on beside the gap (the scenario's J, which pulls towards y_ref, would choose that), then J."""
+        plans = [(st, r._replace(follower_braking=self.follower_braking(s, obs, r.plan.Z, r.values))) for st, r in plans]
+        if len(plans) == 1:
+            return plans[0]
+        y0 = obs.z0[1]
+        excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy, r.follower_braking - s.b_courtesy)
+        merges = lambda r: (s.road.lane_of(r.plan.Z[-3]) == s.road.lane_of(s.y_ref)
+                            or abs(s.y_ref - y0) - abs(s.y_ref - r.plan.Z[-3]) >= self.progress)
+        return min(plans, key=lambda p: (excess(p[1]), (0, p[1].J) if merges(p[1]) else (1, p[0].rank, p[1].J)))
+
+
+def speeds(s: Settings, history) -> dict:
+    """The observed speeds (m/s) a candidate may hold: the nearest target-lane car behind the ego's and ahead of it, the
+    target lane's mean, and the ego's own, from the last two observed steps of the history (T_obs, SLOTS, 2); a car
+    that is not seen gives no entry."""
+    x, y = history[-1, :, 0], history[-1, :, 1]
+    v = (x - history[-2, :, 0]) / s.params.dt
+    target = np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
+    out = {"own": float(v[0])}
+    if len(target):
+        out["stream"] = float(v[target].mean())
+        behind, ahead = target[x[target] <= x[0]], target[x[target] > x[0]]
+        if len(behind):
+            out["behind"] = float(v[behind[np.argmax(x[behind])]])
+        if len(ahead):
+            out["ahead"] = float(v[ahead[np.argmin(x[ahead])]])
+    return out
+
+
+def track(s: Settings, z0, y_target, v_target, tau: float):
+    """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
+    (K, H) in m, their heading held within psi_box, while their speed approaches v_target (K,) in m/s with time
+    constant tau (s) within a_box, never reversing."""
+    K, H = y_target.shape
+    z = np.repeat(np.asarray(z0, float)[None], K, 0)
+    Delta, alpha, Z, p = [], [], [], s.params
+    for k in range(H):
+        v = np.maximum(z[:, 3], 1.0)
+        psi_d = np.clip(np.arctan(0.6 * (y_target[:, k] - z[:, 1]) / v), *s.psi_box)
+        d = np.clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, *s.delta_box)
+        a = np.maximum(np.clip((v_target - z[:, 3]) / tau, *s.a_box), -z[:, 3] / p.dt)
+        z = bicycle.step(z, np.stack([d, a], -1), p)
+        Delta.append(d)
+        alpha.append(a)
+        Z.append(z)
+    return np.stack(Delta, 1), np.stack(alpha, 1), np.concatenate(Z, 1)
+
+
+class Judged(NamedTuple):
+    """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
+    imposes on another car (m/s^2), the first step in the target lane (horizon + 1: none) and its cost J over T_p."""
+
+    b_min: float
+    braking: float
+    merge: int
+    J: float
+
+
+@dataclass(frozen=True)
+class Interactive:
+    """mpc=interactive: no behaviour rule. Candidate plans (wait in lane, lean towards the target lane by `lean`, or lean
+    and then steer into it after each of `merge_steps`, each at the speeds a candidate may hold: stopped, its own, the
+    nearest target-lane car's behind and ahead, the stream's mean) are rolled out by the predictor over `horizon` steps
+    (beyond T_p, so a plan that positions for a later merge has a value). A candidate counts when the predicted others
+    stay outside the safety shape and nobody is predicted to brake harder than b_courtesy; among those the earliest
+    merge, then the lowest J. The best `refine` are refined by ADMM (Algorithm 1) towards their own aim and also offered
+    as they are; the plan applied is the first by that order whose step-horizon braking stays within b_courtesy."""
+
+    lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
+    merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
+    horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges a candidate; at least T_p
+    tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
+    refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
+
+    def __post_init__(self):
+        check_fields(self, "mpc.strategy")
+
+    def plans(self, s: Settings, obs: Observation, warm):
+        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every candidate over the horizon H."""
+        H, y0 = max(self.horizon, s.T_p), obs.z0[1]
+        lane_y = s.road.centre(s.road.lane_of(y0))
+        towards = np.sign(s.y_ref - lane_y)
+        lateral = {"merged": np.full(H, s.y_ref)} if towards == 0 else {
+            "wait": np.full(H, lane_y), "lean": np.full(H, lane_y + towards * self.lean),
+            **{f"merge after {m}": np.where(np.arange(H) < m, lane_y + towards * self.lean, s.y_ref) for m in self.merge_steps}}
+        v_of = {"stop": 0.0, **speeds(s, obs.history)}
+        names = [f"{lat}, v {v_name} {v:.1f} m/s" for lat in lateral for v_name, v in v_of.items()]
+        y_t = np.array([lateral[lat] for lat in lateral for _ in v_of])
+        v_t = np.array([v for _ in lateral for v in v_of.values()])
+        Delta, alpha, Z = track(s, obs.z0, y_t, v_t, self.tau)
+        aims = [(y[s.T_p - 1], v) for y, v in zip(y_t, v_t)]
+        if warm is not None:  # the shifted previous plan, its last control held beyond it
+            prev = start_point(s, obs, warm)[0]
+            hold = lambda u: np.concatenate([u, np.full(H - s.T_p, u[-1])])
+            d, a = hold(prev.Delta), hold(prev.alpha)
+            z = simulate(obs.z0, d, a, s.params)
+            names, aims = [*names, "shifted"], [*aims, (z[4 * s.T_p - 3], z[4 * s.T_p - 1])]
+            Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
+        return names, Delta, alpha, Z, aims
+
+    def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
+        """The predictor's verdict on each candidate (K, H): one batched rollout of its values under every plan."""
+        K, H = Delta.shape
+        ego = Z.reshape(K, H, 4)
+        values = source.values(obs.history, ego[:, :, :2])
+        b = [b_i(v, s.R, s.stretch, s.shape).min(initial=np.inf) for v in values]
+        history = np.broadcast_to(obs.history, (K, *np.shape(obs.history)))
+        braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
+        in_target = s.road.lane_of(ego[:, :, 1]) == s.road.lane_of(s.y_ref)
+        merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, H + 1)
+        J = [J_of(s, obs.u_prev, Delta[k, :s.T_p], alpha[k, :s.T_p], Z[k, :4 * s.T_p]) for k in range(K)]
+        return [Judged(*x) for x in zip(b, braking, merge, J)]
+
+    def order(self, s: Settings, judged: list[Judged]) -> list[int]:
+        """Candidates best first: those the predictor finds safe and courteous (b_min >= 0, braking <= b_courtesy),
+        then by the earliest merge and the lowest J; the others after them, the least unsafe first."""
+        b_c = np.inf if s.b_courtesy is None else s.b_courtesy
+        ok = lambda j: j.b_min >= 0.0 and j.braking <= b_c
+        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, judged[k].J) if ok(judged[k])
+                      else (1, -min(judged[k].b_min, 0.0), max(judged[k].braking - b_c, 0.0)))
+
+    def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
+        """The best `refine` candidates by the predictor's verdict, each as ADMM's start towards its aim (the lateral
+        target and speed it holds at T_p) and as it is (aim None: the safeguard's check only)."""
+        names, Delta, alpha, Z, aims = self.plans(s, obs, warm)
+        best = self.order(s, self.judge(s, obs, source, Delta, alpha, Z))[:self.refine]
+        out = []
+        for rank, k in enumerate(best):
+            plan = admm.ADMMState(Delta[k, :s.T_p], alpha[k, :s.T_p], Z[k, :4 * s.T_p], np.zeros(4 * s.T_p))
+            out += [Start(names[k], plan, replace(s, y_ref=float(aims[k][0]), v_ref=float(aims[k][1])), rank),
+                    Start(f"{names[k]} as planned", plan, None, rank + 0.5)]
+        return out
+
+    def choose(self, s: Settings, obs: Observation, plans):
+        """The best-ranked plan whose predicted braking over T_p stays within b_courtesy, else the least braking."""
+        b_c = np.inf if s.b_courtesy is None else s.b_courtesy
+        return min(plans, key=lambda p: (max(0.0, p[1].braking - b_c), p[0].rank))

@@ -1,0 +1,108 @@
+"""mpc=interactive: its candidates and choice judged by the predictor alone, on hand-built predictions of a ego
+leaning in beside two target-lane cars (ahead and behind), and its config."""
+import numpy as np
+import pytest
+
+from planner import mpc, step
+from planner.setup import make
+from planner.strategy import Interactive, Judged, speeds
+
+DT = 0.2
+
+
+class Scripted:
+    """A predictor written by hand: the cars keep their observed speed, except the one behind the ego (slot 2), which
+    brakes at `brake` m/s^2 from the first step the ego's plan leans deeper than `trigger` m (0: it never reacts)."""
+
+    name = "scripted"
+
+    def __init__(self, brake=0.0, trigger=1.0):
+        self.brake, self.trigger = brake, trigger
+
+    def values(self, history, egos):
+        v = (history[-1] - history[-2]) / DT  # (SLOTS, 2)
+        out = []
+        for ego in np.asarray(egos):
+            H = len(ego)
+            xy = history[-1] + np.arange(1, H + 1)[:, None, None] * DT * v  # (H, SLOTS, 2)
+            leaned = np.flatnonzero(ego[:, 1] > self.trigger)
+            if self.brake and len(leaned):
+                k0 = leaned[0]
+                t = np.clip(np.arange(1, H + 1) - k0, 0, None) * DT  # time since it began to brake (s)
+                vb = v[2, 0]
+                stop = vb / self.brake
+                xy[:, 2, 0] -= 0.5 * self.brake * np.minimum(t, stop) ** 2 + np.maximum(t - stop, 0.0) * 0.0
+            xy[:, 0] = ego
+            out.append(xy)
+        return np.array(out)
+
+
+def world(gap_ahead, gap_behind, v=5.0):
+    """Settings of mpc=interactive on dense and an observation: the ego in its lane (y 0) at v m/s, a target-lane car
+    gap_ahead m ahead and one gap_behind m behind it, both at v, two far cars; history at constant velocity."""
+    s = make("dense", ["gradients=cv", "mpc=interactive"])[2]
+    k = np.arange(-7, 1)[:, None] * DT * v
+    cars = [[0.0, 0.0], [gap_ahead, 4.0], [-gap_behind, 4.0], [80.0, 4.0], [-80.0, 4.0]]
+    history = np.array(cars)[None] + np.stack([k[:, 0], np.zeros(8)], 1)[:, None]
+    return s, mpc.Observation(np.array([0.0, 0.0, 0.0, v]), np.zeros(2), history)
+
+
+def best(s, obs, source):
+    """The name and verdict of the candidate the strategy ranks first."""
+    names, Delta, alpha, Z, _ = s.strategy.plans(s, obs, None)
+    judged = s.strategy.judge(s, obs, source, Delta, alpha, Z)
+    k = s.strategy.order(s, judged)[0]
+    return names[k], judged[k]
+
+
+def test_the_speeds_a_candidate_may_hold_are_those_observed():
+    s, obs = world(4.5, 4.5)
+    obs.history[:, 2, 0] -= np.arange(-7, 1) * DT * 1.0  # the car behind drives at 4 m/s
+    assert speeds(s, obs.history) == pytest.approx({"own": 5.0, "stream": 5.0 * 3 / 4 + 4.0 / 4, "behind": 4.0, "ahead": 5.0})
+
+
+def test_a_predictor_that_sees_the_driver_behind_yield_merges_where_constant_velocity_waits():
+    s, obs = world(4.5, 4.5)  # 9 m between the two: the shape needs 10.1 m, so nothing fits unless the car behind yields
+    name, verdict = best(s, obs, Scripted())  # constant velocity: nobody reacts
+    assert not name.startswith("merge") and verdict.merge == s.strategy.horizon + 1 and verdict.b_min >= 0
+    name, verdict = best(s, obs, Scripted(brake=1.5))  # it yields, gently, to a lean
+    assert name.startswith("merge after") and verdict.merge <= s.strategy.horizon and verdict.braking <= s.b_courtesy
+    assert verdict.b_min >= 0.0
+
+
+def test_a_predictor_that_sees_the_cut_in_force_the_driver_behind_refuses_the_gap_constant_velocity_takes():
+    s, obs = world(5.5, 5.5)  # 11 m: room enough at constant velocity
+    name, verdict = best(s, obs, Scripted())
+    assert name.startswith("merge after 0") and verdict.braking == pytest.approx(0.0, abs=1e-9)
+    name, verdict = best(s, obs, Scripted(brake=6.0, trigger=2.0))  # entering its lane makes it brake at 6 m/s^2
+    assert not name.startswith("merge") and verdict.braking <= s.b_courtesy
+
+
+def test_the_order_puts_safe_and_courteous_first_then_the_earliest_merge_then_J():
+    s = world(4.5, 4.5)[0]
+    judged = [Judged(-1.0, 0.0, 3, 1.0), Judged(1.0, 5.0, 2, 1.0), Judged(1.0, 1.0, 9, 5.0), Judged(1.0, 1.0, 9, 4.0),
+              Judged(1.0, 0.0, 16, 0.0), Judged(-0.5, 0.0, 1, 0.0)]
+    assert s.strategy.order(s, judged) == [3, 2, 4, 1, 5, 0]
+
+
+def test_an_interactive_step_solves_and_reports_which_candidate_it_applied():
+    s, obs = world(4.5, 4.5)
+    _, source, _ = make("dense", ["gradients=cv", "mpc=interactive"])
+    from hydra.utils import instantiate
+
+    from planner.setup import planner_config
+    zstep = instantiate(planner_config("dense", ["gradients=cv"]).solver.step).keywords["zstep"]
+    result = step.mpc_step(s, obs, source, None, zstep)
+    assert result.fallback == "" and ", from " in result.reason and np.all(np.isfinite(result.u))
+
+
+@pytest.mark.parametrize("override,message", [("mpc.strategy.horizon=0", "mpc.strategy.horizon=0: must be an integer >= 1"),
+                                              ("mpc.strategy.merge_steps=[]", "mpc.strategy.merge_steps=[]: must be a list of at least 1")])
+def test_a_bad_interactive_value_is_one_line(override, message):
+    from core.jobs import UserError
+    with pytest.raises(UserError, match="^" + message.replace("[", r"\[").replace("]", r"\]")):
+        make("dense", ["gradients=cv", "mpc=interactive", override])
+
+
+def test_interactive_is_its_own_strategy_beside_rules():
+    assert isinstance(make("dense", ["gradients=cv", "mpc=interactive"])[2].strategy, Interactive)
