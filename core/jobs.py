@@ -127,8 +127,6 @@ def _in_numba_callback(frame) -> bool:
 def _stop(signum, frame):
     """SIGTERM/SIGINT: raise Stopped here, or, where raising is unsafe, at the first safe point; a later signal is
     ignored (the first one's clean-up runs)."""
-    import _thread
-
     if _STOPPED and not _STOPPED[1:]:  # a second signal while the first one is being handled
         return
     if not _STOPPED:
@@ -139,11 +137,20 @@ def _stop(signum, frame):
     if _in_numba_callback(frame):
         _STOPPED.append("retry")  # marks the next call of this handler as this signal's, not a second one
         # this handler again, from a thread: it runs once the compiled call has returned the GIL to Python code
-        retry = threading.Timer(RETRY_S, _thread.interrupt_main, (signum,))
+        retry = threading.Timer(RETRY_S, _retry, (signum,))
         retry.daemon = True
         retry.start()
         return
     raise Stopped(signum)
+
+
+def _retry(signum) -> None:
+    """Run the stop handler again (in the main thread, at its next bytecode) if its signal is still waiting for it: not
+    once something else raised it (check_stopped) or the job ended."""
+    import _thread
+
+    if _STOPPED[1:] == ["retry"]:
+        _thread.interrupt_main(signum)
 
 
 @contextlib.contextmanager
@@ -162,6 +169,7 @@ def uninterrupted():
 def check_stopped() -> None:
     """Raise Stopped if a stop signal arrived (for a loop whose step may have caught the signal's exception)."""
     if stop_signal() is not None:
+        _STOPPED[1:] = []  # raised here: a retry still to come has nothing left to do
         raise Stopped(stop_signal())
 
 
@@ -220,12 +228,14 @@ def guarded(fn):
                 sys.exit(128 + stop_signal())
             if not (isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)):
                 raise
-            print(f"error: no space left on the device of {e.filename or 'an output file'}; the old outputs are kept",
-                  file=sys.stderr)
+            print(f"error: no space left on the device ({e.filename2 or e.filename or 'an output file'}); the old outputs "
+                  "are kept", file=sys.stderr)
             sys.exit(2)
         finally:
             for s, handler in previous.items():
                 signal.signal(s, handler)
+            if main:
+                _STOPPED.clear()  # what stopped this job stops nothing after it (the next job, a test)
 
     run.__name__, run.__doc__ = fn.__name__, fn.__doc__
     return run
