@@ -1,0 +1,243 @@
+"""The planner under bad inputs: a bad observation or step error is a reported fallback, never a traceback; a
+set-up it cannot drive is one line before the first step; a batch fails on crashes; compare never pools differing
+set-ups; the gymnasium policy and env check what they are given."""
+import re
+
+import mlflow
+import numpy as np
+import pytest
+from errors_common import error_lines
+from hydra.utils import instantiate
+
+from conftest import compose_cfg
+from core import jobs
+from core.jobs import UserError, mlflow_run
+from data.world import backfill
+from planner import cli, jit_admm, jit_rollout, mpc, setup
+from planner.compare import run as compare
+from planner.setup import make, planner_config
+
+
+@pytest.fixture(scope="module")
+def start():
+    """two_lane settings, an observation of its start, a warm plan from one solved step (analytic predictor), the ADMM
+    and NNMPC steps."""
+    cfg = planner_config("two_lane", ["gradients=analytic", "method=nnmpc"])
+    scenario, source, s = setup.setup(cfg)
+    z = scenario.make_world(0).z
+    obs = mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2))
+    admm_step = instantiate(cfg.solver.step)
+    return s, source, obs, admm_step(s, obs, source, None).plan, admm_step, instantiate(cfg.method.nnmpc)
+
+
+@pytest.mark.parametrize("field", ["z0", "u_prev", "history"])
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
+def test_non_finite_observation_is_a_reported_fallback(start, field, bad):
+    s, source, obs, warm, admm_step, nnmpc_step = start
+    broken = getattr(obs, field).copy()
+    broken.flat[1] = bad
+    obs = obs._replace(**{field: broken})
+    steps = [lambda w: admm_step(s, obs, source, w)]
+    if field != "u_prev":  # NNMPC never reads the last input
+        steps.append(lambda w: nnmpc_step(s, obs, source, w))
+    for step in steps:
+        for w in (warm, None):
+            result = step(w)
+            assert "non-finite observation" in result.fallback
+            assert np.all(np.isfinite(result.u)) and result.reason == "fallback"
+
+
+def test_braking_fallback_stops_the_ego_and_never_reverses(start):
+    s, source, obs, *_ = start
+    slow = obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 0.3]))  # 0.3 m/s: one step of the full brake would reverse
+    result = mpc.fallback(s, slow, source, None, "test")
+    assert "braking in lane" in result.fallback
+    assert result.u[1] == pytest.approx(-0.3 / s.params.dt) and result.u[1] > s.brake
+    v = mpc.simulate(slow.z0, result.plan.Delta, result.plan.alpha, s.params)[3::4]
+    np.testing.assert_allclose(v, 0.0, atol=1e-12)  # stopped after one step and held there
+    fast = mpc.fallback(s, obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 5.0])), source, None, "test")
+    assert fast.u[1] == s.brake  # far from a stop: the configured deceleration
+
+
+@pytest.mark.parametrize("relative", [False, True])
+def test_beside_a_car_a_plan_no_worse_than_braking_is_acceptable_only_with_check_relative(relative):
+    _, source, s = make("two_lane", ["gradients=cv", f"mpc.check_relative={relative}"])
+    z0 = np.array([0.0, 1.0, 0.0, 5.0])  # straddling towards the target lane, 3 m from a car beside it at 5 m/s
+    cars = np.array([[0.0, 4.0], [60.0, 4.0], [80.0, 4.0], [100.0, 4.0]])
+    history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
+    obs = mpc.Observation(z0, np.zeros(2), history)
+    Delta, alpha = mpc.brake_plan(s, z0)
+    b_brake = mpc.plan_safe(s, obs, source, Delta, alpha)[0]
+    assert 3.0**2 - s.R**2 <= b_brake < -1.0  # braking back to the lane centre stays inside R for the checked steps too
+    keep = mpc.plan_safe(s, obs, source, Delta, np.zeros(s.T_p))[0]  # the same steering at 5 m/s, still beside it
+    towards = mpc.plan_safe(s, obs, source, np.full(s.T_p, 0.3), np.zeros(s.T_p))[0]  # steer at it
+    assert b_brake - s.check_tol <= keep < -s.check_tol and towards < b_brake - s.check_tol
+    assert mpc.acceptable(s, obs, source, keep) == relative
+    assert not mpc.acceptable(s, obs, source, towards)
+    assert mpc.acceptable(s, obs, source, -s.check_tol)  # within the tolerance: always
+
+
+def test_an_unexpected_error_in_a_step_is_a_fallback_with_its_reason(monkeypatch):
+    cfg = planner_config("two_lane", ["gradients=cv"])
+    scenario, source, s = setup.setup(cfg)
+    z = scenario.make_world(0).z
+    obs = mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2))
+    step = instantiate(cfg.solver.step)
+    warm = step(s, obs, source, None).plan
+
+    def broken(*args):
+        raise ValueError("matmul: size 80 is different from 30")
+
+    monkeypatch.setattr(source, "jacobian", broken)
+    monkeypatch.setattr(jit_rollout, "predicted", broken)  # the compiled core's own rollout of cv (mpc.core=compiled)
+    monkeypatch.setattr(jit_admm, "admm_loop", broken)  # and its one-call ADMM solve
+    for w in (None, warm):
+        r = step(s, obs, source, w)
+        assert r.reason == "fallback" and r.fallback.startswith("step error (ValueError: matmul: size 80 is different from 30)")
+    monkeypatch.setattr(source, "values", broken)  # not even the shifted plan can be judged: braking in lane
+    assert step(s, obs, source, warm).fallback.endswith("; braking in lane")
+
+
+def test_a_one_step_horizon_plans():
+    cfg = planner_config("two_lane", ["gradients=cv", "mpc.T_p=1", "max_steps=3", "method=both"])
+    scenario, source, s = setup.setup(cfg)
+    for m in ("admm", "nnmpc"):
+        ep = setup.drive(cfg, scenario, source, s, m)
+        assert len(ep.rows) == 3 and np.isfinite(ep.controls).all()
+
+
+def test_failing_run_is_marked_failed_with_the_error():
+    cfg = compose_cfg("planner", ["scenario=two_lane"])
+    with pytest.raises(UserError):
+        with mlflow_run("hardening", cfg, run_name="boom") as run:
+            raise UserError("the planner found nothing to plan")
+    got = mlflow.get_run(run.info.run_id)
+    assert got.info.status == "FAILED"
+    assert got.data.tags["error"] == "UserError: the planner found nothing to plan"
+
+
+def batch_cfg(tmp_path, seed, *overrides):
+    """A tiny random-scenario NNMPC batch of 2 episodes from `seed` (its runs found by that seed)."""
+    return compose_cfg("planner", ["scenario=random", "gradients=analytic", "method=nnmpc", "max_steps=4", "episodes=2",
+                                   "n_jobs=1", f"seed={seed}", f"out_dir={tmp_path}", *overrides])
+
+
+def runs_of(seed):
+    """Status of the planner runs of `seed`."""
+    return list(mlflow.search_runs(experiment_names=["planner"], filter_string=f"params.seed = '{seed}'")["status"])
+
+
+@pytest.mark.parametrize("crash_seeds,tolerate,fails", [
+    ({7000, 7001}, "false", True), ({7100, 7101}, "true", True), ({7200}, "false", True), ({7300}, "true", False)])
+def test_a_batch_with_crashes_fails_with_the_count_unless_tolerated(crash_seeds, tolerate, fails, tmp_path, monkeypatch,
+                                                                    capsys):
+    real = setup.drive
+
+    def flaky(cfg, scenario, source, s, method, seed=None):
+        if seed in crash_seeds:
+            raise RuntimeError(f"boom {seed}")
+        return real(cfg, scenario, source, s, method, seed=seed)
+
+    monkeypatch.setattr(setup, "drive", flaky)
+    seed = min(crash_seeds)
+    cfg = batch_cfg(tmp_path, seed, f"tolerate_crashes={tolerate}")
+    if not fails:
+        assert cli.run(cfg)["nnmpc"]["crashes"] == 1 and runs_of(seed) == ["FINISHED"]
+        return
+    with pytest.raises(SystemExit) as e:
+        cli.run(cfg)
+    assert e.value.code == 2 and runs_of(seed) == ["FAILED"]
+    (err,) = error_lines(capsys.readouterr().err)
+    assert err.startswith(f"error: {len(crash_seeds)} of 2 nnmpc episodes crashed (first: RuntimeError: boom {seed}); see ")
+    assert ("tolerate_crashes=true" in err) == (len(crash_seeds) == 1)
+
+
+def test_compare_splits_runs_that_differ_in_any_setting_and_pools_the_rest(store):
+    cfg = planner_config("two_lane", ["gradients=cv"])
+    base = jobs.flatten(cfg) | {"gradients": "cv", "predictor": "cv", "method": "admm", "zstep": "sqp", "solver": "admm",
+                                "scenario": "two_lane"}
+    ok = {"merged": 1, "collision": 0, "step_ms_median": 5.0, "step_ms_p95": 9.0, "t_merge": 11, "C_max": 60, "d_min_m": 4.0}
+    mlflow.set_experiment("planner")
+    for change in [{}, {"n_jobs": "2", "plots": "False", "out_dir": "/elsewhere"}, {"solver": "ipopt"}, {"T_obs": "2"},
+                   {"mpc.weights.lambda_v": "7.0"}, {"scenario.merge_tol": "100"}, {"models_dir": "other"},
+                   {"method.nnmpc.lengths": "[8.0]"}]:  # the last: a method=both run's config of the method it was not
+        with mlflow.start_run():
+            params = list((base | change).items())
+            for i in range(0, len(params), 100):
+                mlflow.log_params(dict(params[i : i + 100]))
+            mlflow.log_metrics(ok)
+    df = compare(compose_cfg("compare", [f"out_dir={store}"]))
+    assert len(df) == 6 and sorted(df["n_runs"]) == [1, 1, 1, 1, 1, 3]
+    assert set(df.attrs["params"]) >= {"solver", "T_obs", "mpc.weights.lambda_v", "scenario.merge_tol", "models_dir"}
+    assert "n_jobs" not in df and "method.nnmpc.lengths" not in df
+    assert sorted(df["solver"]) == ["admm"] * 5 + ["ipopt"] and sorted(df["T_obs"]) == ["2"] + ["8"] * 5
+
+
+def test_compare_ignores_only_keys_of_the_planner_config():
+    keys = jobs.flatten(planner_config("two_lane"))
+    for key in compose_cfg("compare").ignore:
+        assert any(k == key or k.startswith(f"{key}.") for k in keys), key
+
+
+def test_world_predictor_that_cannot_see_every_car_is_refused_before_driving(tmp_path, monkeypatch, capsys):
+    from planner import cli
+
+    monkeypatch.setattr(cli, "drive", lambda *a, **k: pytest.fail("drove an episode"))
+    with pytest.raises(SystemExit) as e:
+        cli.run(compose_cfg("planner", ["scenario=dense", "world=predictor", "gradients=cv", f"out_dir={tmp_path}"]))
+    assert e.value.code == 2
+    (err,) = error_lines(capsys.readouterr().err)
+    assert err.startswith("error: world=predictor moves every car with the predictor, but it sees n_slots=4 of the ")
+
+
+def test_a_record_dir_that_is_a_file_is_refused_before_driving(tmp_path, monkeypatch, capsys):
+    from planner import cli
+
+    (tmp_path / "a_file").write_text("")
+    monkeypatch.setattr(cli, "drive", lambda *a, **k: pytest.fail("drove an episode"))
+    with pytest.raises(SystemExit) as e:
+        cli.run(compose_cfg("planner", ["gradients=cv", f"record_dir={tmp_path / 'a_file'}", f"out_dir={tmp_path / 'out'}"]))
+    assert e.value.code == 2
+    (err,) = error_lines(capsys.readouterr().err)
+    assert err.startswith(f"error: cannot write to the output folder {tmp_path / 'a_file'}") and "record_dir=" in err
+
+
+@pytest.mark.parametrize("override,message", [
+    ("mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"), ("mpc.rho=-5", "mpc.rho=-5: must be"),
+    ("mpc.admm.max_iters=0", "mpc.admm.max_iters=0: must be an integer >= 1"),
+    ("scenario.params.dt=0", "scenario.params.dt=0: must be a number > 0"),
+])
+def test_the_gym_policy_is_built_through_the_commands_checks(override, message):
+    from planner.gym_policy import MergePolicy
+
+    with pytest.raises(UserError, match=f"^{re.escape(message)}"):
+        MergePolicy(["gradients=cv", override])
+
+
+@pytest.fixture(scope="module")
+def gym_policy():
+    """highway-env's dense merge and the planner as its policy (cv), reset."""
+    import gymnasium
+
+    from planner.gym_policy import MergePolicy
+
+    env = gymnasium.make("admm-nnmpc/DenseMerge-v0")
+    policy = MergePolicy(["gradients=cv"])
+    return env, policy
+
+
+@pytest.mark.parametrize("observation", [np.zeros(6), np.zeros((24, 5)), np.full((24, 6), np.nan), "none"])
+def test_the_gym_policy_answers_a_bad_observation_in_one_line(observation, gym_policy):
+    _, policy = gym_policy
+    policy.reset()
+    with pytest.raises(UserError, match=r"^MergePolicy: an observation is rows \[present, id, x, y, heading, speed\]"):
+        policy(observation)
+
+
+@pytest.mark.parametrize("action", [[np.nan, np.nan], np.zeros(5), [0.1], "left", [[0.1, 0.2]]])
+def test_the_env_answers_a_bad_action_in_one_line(action, gym_policy):
+    env, _ = gym_policy
+    env.reset(seed=2000000)
+    with pytest.raises(UserError, match=r"takes \[acceleration, steering\], two finite numbers in \[-1, 1\]$"):
+        env.step(action)
+    env.step([0.0, 0.0])  # a good one still steps
