@@ -13,6 +13,7 @@ from core import jobs, validate
 from core.jobs import UserError, guarded, options
 from distill.models import StudentPredictor, TorchPredictor
 from distill.train import make_trainer
+from planner import setup
 from planner.setup import check_window, planner_config
 
 
@@ -46,8 +47,11 @@ from planner.setup import check_window, planner_config
     ("bench", "step_time.profile=[nonexistent]", "step_time.profile=['nonexistent']: must be a list, each one of"),
 ])
 def test_bad_config_values_are_one_line_naming_key_value_and_range(config, override, message):
+    cfg = compose_cfg(config, [override, *(["gradients=cv"] if config == "planner" else [])])
     with pytest.raises(UserError) as e:
-        validate.check(compose_cfg(config, [override]), config)
+        validate.check(cfg, config)
+        if config == "planner":
+            setup.setup(cfg)  # the mpc values its settings dataclasses check on their fields
     assert str(e.value).startswith(message)
 
 

@@ -13,7 +13,7 @@ from conftest import compose_cfg
 from core import jobs
 from core.jobs import UserError, mlflow_run
 from data.world import backfill
-from planner import cli, jit_admm, jit_rollout, mpc, setup
+from planner import cli, jit_admm, jit_rollout, mpc, safeguard, setup
 from planner.compare import run as compare
 from planner.setup import make, planner_config
 
@@ -50,12 +50,12 @@ def test_non_finite_observation_is_a_reported_fallback(start, field, bad):
 def test_braking_fallback_stops_the_ego_and_never_reverses(start):
     s, source, obs, *_ = start
     slow = obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 0.3]))  # 0.3 m/s: one step of the full brake would reverse
-    result = mpc.fallback(s, slow, source, None, "test")
+    result = safeguard.fallback(s, slow, source, None, "test")
     assert "braking in lane" in result.fallback
     assert result.u[1] == pytest.approx(-0.3 / s.params.dt) and result.u[1] > s.brake
     v = mpc.simulate(slow.z0, result.plan.Delta, result.plan.alpha, s.params)[3::4]
     np.testing.assert_allclose(v, 0.0, atol=1e-12)  # stopped after one step and held there
-    fast = mpc.fallback(s, obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 5.0])), source, None, "test")
+    fast = safeguard.fallback(s, obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 5.0])), source, None, "test")
     assert fast.u[1] == s.brake  # far from a stop: the configured deceleration
 
 
@@ -67,14 +67,14 @@ def test_beside_a_car_a_plan_no_worse_than_braking_is_acceptable_only_with_check
     history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
     obs = mpc.Observation(z0, np.zeros(2), history)
     Delta, alpha = mpc.brake_plan(s, z0)
-    b_brake = mpc.plan_safe(s, obs, source, Delta, alpha)[0]
+    b_brake = safeguard.plan_safe(s, obs, source, Delta, alpha)[0]
     assert 3.0**2 - s.R**2 <= b_brake < -1.0  # braking back to the lane centre stays inside R for the checked steps too
-    keep = mpc.plan_safe(s, obs, source, Delta, np.zeros(s.T_p))[0]  # the same steering at 5 m/s, still beside it
-    towards = mpc.plan_safe(s, obs, source, np.full(s.T_p, 0.3), np.zeros(s.T_p))[0]  # steer at it
+    keep = safeguard.plan_safe(s, obs, source, Delta, np.zeros(s.T_p))[0]  # the same steering at 5 m/s, still beside it
+    towards = safeguard.plan_safe(s, obs, source, np.full(s.T_p, 0.3), np.zeros(s.T_p))[0]  # steer at it
     assert b_brake - s.check_tol <= keep < -s.check_tol and towards < b_brake - s.check_tol
-    assert mpc.acceptable(s, obs, source, keep) == relative
-    assert not mpc.acceptable(s, obs, source, towards)
-    assert mpc.acceptable(s, obs, source, -s.check_tol)  # within the tolerance: always
+    assert safeguard.acceptable(s, obs, source, keep) == relative
+    assert not safeguard.acceptable(s, obs, source, towards)
+    assert safeguard.acceptable(s, obs, source, -s.check_tol)  # within the tolerance: always
 
 
 def test_an_unexpected_error_in_a_step_is_a_fallback_with_its_reason(monkeypatch):
