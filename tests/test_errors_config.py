@@ -124,7 +124,7 @@ def test_a_window_the_model_cannot_take_is_refused_before_planning():
         check_window(planner_config("two_lane", ["n_slots=5"]), TorchPredictor("teacher", teacher))
 
 
-def test_interaction_values_are_checked():  # the bench's values: test_robustness's table of bad config values
+def test_interaction_values_are_checked():  # the bench's values: as the table of bad config values above
     with pytest.raises(UserError) as e:
         validate.check(compose_cfg("evaluate_interaction", ["sources=[]"]), interaction.SCHEMA)
     assert str(e.value).startswith("sources=[]: must be a list of at least 1")
