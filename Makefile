@@ -14,12 +14,14 @@ $(STAMP): pyproject.toml
 
 # The whole pipeline at demo size (about 9 minutes on 2 cores once installed): data, teacher, certified student, the
 # states the student's courteous planner linearises at (seeds from 5,000,000, kept from data and tests), the gradient
-# surrogate trained and tested on them, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, the accuracy-vs-speed
-# table; then the dense headline (about 1.5 of those minutes, most of it the ceiling's search): on 4 held-out dense
-# worlds (seeds from 2,000,000) the clairvoyant ceiling, the student's ADMM with the paper's step and with the courteous
-# step, one short table and a GIF of one courteous merge (outputs/demo/merge_courteous.gif). The teacher trains 4
-# epochs here (2 min) instead of its default 12 (6.5 min: 40.6 against 42.6 mm rollout ADE; `make results` uses 12);
-# the surrogate sees 2000 of the planner's states instead of its default 8000.
+# surrogate trained and tested on them, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, the accuracy-vs-speed table;
+# then the dense headline (about 1.5 of those minutes, estimated from 144 s of processor time, two thirds of it the
+# ceiling's search): on 4 held-out dense worlds (seeds from 2,000,000) the clairvoyant ceiling, ADMM with
+# constant-velocity predictions (cv) and the paper's step, then the courteous step, one short table and a GIF of one
+# courteous merge (outputs/demo/merge_courteous.gif). cv, because the courteous step merges as often with it as with the
+# learned predictors (results/README-results.md) and the student's paper step takes 4.5 times as long there. The teacher
+# trains 4 epochs here (2 min) instead of its default 12 (6.5 min: 40.6 against 42.6 mm rollout ADE; `make results` uses
+# 12); the surrogate sees 2000 of the planner's states instead of its default 8000.
 demo: $(STAMP)
 	$(BIN)/make-dataset
 	$(BIN)/distill model=teacher model.epochs=4
@@ -31,9 +33,9 @@ demo: $(STAMP)
 	$(BIN)/planner --gradients=student method=both scenario=two_lane
 	$(BIN)/compare
 	$(BIN)/ceiling scenario=dense episodes=4 seed=2000000 out_dir=outputs/demo
-	$(BIN)/planner scenario=dense gradients=student method=admm episodes=4 seed=2000000 plots=false out_dir=outputs/demo/paper
-	$(BIN)/planner scenario=dense gradients=student mpc=courteous method=admm episodes=4 seed=2000000 plots=false out_dir=outputs/demo/courteous
-	$(BIN)/python -m bench.demo outputs/demo scenario=dense gradients=student
+	$(BIN)/planner scenario=dense gradients=cv method=admm episodes=4 seed=2000000 plots=false out_dir=outputs/demo/paper
+	$(BIN)/planner scenario=dense gradients=cv mpc=courteous method=admm episodes=4 seed=2000000 plots=false out_dir=outputs/demo/courteous
+	$(BIN)/python -m bench.demo outputs/demo scenario=dense gradients=cv
 
 test: $(STAMP)
 	$(BIN)/ruff check .
