@@ -187,7 +187,7 @@ def speeds(s: Settings, history) -> dict:
 
 def track(s: Settings, z0, y_target, v_target, tau: float):
     """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
-    (K, H) in m, their heading held within psi_box, while their speed approaches v_target (K,) in m/s with time
+    (K, H) in m, their heading held within psi_box, while their speed approaches v_target (K, H) in m/s with time
     constant tau (s) within a_box, never reversing."""
     K, H = y_target.shape
     z = np.repeat(np.asarray(z0, float)[None], K, 0)
@@ -196,7 +196,7 @@ def track(s: Settings, z0, y_target, v_target, tau: float):
         v = np.maximum(z[:, 3], 1.0)
         psi_d = np.clip(np.arctan(0.6 * (y_target[:, k] - z[:, 1]) / v), *s.psi_box)
         d = np.clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, *s.delta_box)
-        a = np.maximum(np.clip((v_target - z[:, 3]) / tau, *s.a_box), -z[:, 3] / p.dt)
+        a = np.maximum(np.clip((v_target[:, k] - z[:, 3]) / tau, *s.a_box), -z[:, 3] / p.dt)
         z = bicycle.step(z, np.stack([d, a], -1), p)
         Delta.append(d)
         alpha.append(a)
@@ -218,7 +218,7 @@ class Judged(NamedTuple):
 class Interactive:
     """mpc=interactive: no behaviour rule. Candidate plans (wait in lane, lean towards the target lane by `lean`, or lean
     and then steer into it after each of `merge_steps`, each at the speeds a candidate may hold: stopped, its own, the
-    nearest target-lane car's behind and ahead, the stream's mean) are rolled out by the predictor over `horizon` steps
+    nearest target-lane car's behind and ahead, the stream's mean; entering, the pace of the car ahead) are rolled out by the predictor over `horizon` steps
     (beyond T_p, so a plan that positions for a later merge has a value). A candidate counts when the predicted others
     stay outside the safety shape and nobody is predicted to brake harder than b_courtesy; among those the earliest
     merge, then the lowest J. The best `refine` are refined by ADMM (Algorithm 1) towards their own aim and also offered
@@ -242,11 +242,12 @@ class Interactive:
             "wait": np.full(H, lane_y), "lean": np.full(H, lane_y + towards * self.lean),
             **{f"merge after {m}": np.where(np.arange(H) < m, lane_y + towards * self.lean, s.y_ref) for m in self.merge_steps}}
         v_of = {"stop": 0.0, **speeds(s, obs.history)}
+        v_in = v_of.get("ahead", v_of.get("stream", v_of["own"]))  # entering the lane: the pace of the car it follows
         names = [f"{lat}, v {v_name} {v:.1f} m/s" for lat in lateral for v_name, v in v_of.items()]
         y_t = np.array([lateral[lat] for lat in lateral for _ in v_of])
-        v_t = np.array([v for _ in lateral for v in v_of.values()])
+        v_t = np.where(y_t == s.y_ref, v_in, np.array([v for _ in lateral for v in v_of.values()])[:, None])
         Delta, alpha, Z = track(s, obs.z0, y_t, v_t, self.tau)
-        aims = [(y[s.T_p - 1], v) for y, v in zip(y_t, v_t)]
+        aims = [(y[s.T_p - 1], v[s.T_p - 1]) for y, v in zip(y_t, v_t)]
         if warm is not None:  # the shifted previous plan, its last control held beyond it
             prev = start_point(s, obs, warm)[0]
             hold = lambda u: np.concatenate([u, np.full(H - s.T_p, u[-1])])

@@ -39,10 +39,11 @@ class Scripted:
 
 def world(gap_ahead, gap_behind, v=5.0):
     """Settings of mpc=interactive on dense and an observation: the ego in its lane (y 0) at v m/s, a target-lane car
-    gap_ahead m ahead and one gap_behind m behind it, both at v, two far cars; history at constant velocity."""
+    gap_ahead m ahead and a stream behind it, gap_behind m then every 9.5 m, all at v (too close for the safety shape's
+    10.1 m: an ego that stopped would let the stream pass, but find no room in it); history at constant velocity."""
     s = make("dense", ["gradients=cv", "mpc=interactive"])[2]
     k = np.arange(-7, 1)[:, None] * DT * v
-    cars = [[0.0, 0.0], [gap_ahead, 4.0], [-gap_behind, 4.0], [80.0, 4.0], [-80.0, 4.0]]
+    cars = [[0.0, 0.0], [gap_ahead, 4.0], [-gap_behind, 4.0], [-gap_behind - 9.5, 4.0], [-gap_behind - 19.0, 4.0]]
     history = np.array(cars)[None] + np.stack([k[:, 0], np.zeros(8)], 1)[:, None]
     return s, mpc.Observation(np.array([0.0, 0.0, 0.0, v]), np.zeros(2), history)
 
@@ -59,10 +60,11 @@ def test_the_speeds_a_candidate_may_hold_are_those_observed():
     s, obs = world(4.5, 4.5)
     obs.history[:, 2, 0] -= np.arange(-7, 1) * DT * 1.0  # the car behind drives at 4 m/s
     assert speeds(s, obs.history) == pytest.approx({"own": 5.0, "stream": 5.0 * 3 / 4 + 4.0 / 4, "behind": 4.0, "ahead": 5.0})
+    assert set(speeds(s, obs.history[:, :1])) == {"own"}  # nobody seen in the target lane
 
 
 def test_a_predictor_that_sees_the_driver_behind_yield_merges_where_constant_velocity_waits():
-    s, obs = world(4.5, 4.5)  # 9 m between the two: the shape needs 10.1 m, so nothing fits unless the car behind yields
+    s, obs = world(6.0, 3.0)  # 9 m between the two: the shape needs 10.1 m, so nothing fits unless the car behind yields
     name, verdict = best(s, obs, Scripted())  # constant velocity: nobody reacts
     assert not name.startswith("merge") and verdict.merge == s.strategy.horizon + 1 and verdict.b_min >= 0
     name, verdict = best(s, obs, Scripted(brake=1.5))  # it yields, gently, to a lean
