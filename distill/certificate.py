@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.jobs import UserError
+from core.jobs import UserError, recover
 from core.rollout import SLOTS, T_OBS
 from data import bicycle
 
@@ -370,6 +370,7 @@ def per_scenario(weights, s, glob, region, scenarios, planner, cost, t_p, lambda
 def certified_rho(path, scenario):
     """Theorem 1's rho bound for `scenario` from the student's certificate.json; a one-line UserError when unusable."""
     path = Path(path)
+    recover(path.parent)  # the student's set a stopped distill committed but did not finish moving in
     if not path.is_file():
         raise UserError(f"mpc.rho=certified: no certificate at {path}; run `distill model=student` first")
     try:
