@@ -1,6 +1,7 @@
 """The planner under bad inputs: a bad observation or step error is a reported fallback, never a traceback; a
 set-up it cannot drive is one line before the first step; a batch fails on crashes; compare never pools differing
 set-ups; the gymnasium policy and env check what they are given."""
+import os
 import re
 
 import mlflow
@@ -16,6 +17,13 @@ from data.world import backfill
 from planner import cli, jit_admm, jit_rollout, mpc, safeguard, setup
 from planner.compare import run as compare
 from planner.setup import make, planner_config
+
+
+@pytest.fixture(autouse=True)
+def session_store():
+    """After each test, MLflow on the session's store again (the `store` fixture's own one ends with its test)."""
+    yield
+    mlflow.set_tracking_uri(os.environ["MLFLOW_TRACKING_URI"])
 
 
 @pytest.fixture(scope="module")
