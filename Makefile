@@ -59,8 +59,10 @@ interaction: $(STAMP)
 batch: $(STAMP)
 	$(BIN)/planner scenario=random episodes=1000 seed=2000000 gradients=surrogate method=both
 
-# The clairvoyant ceiling on 200 held-out dense worlds (seeds from 2,000,000) and with every driver stubborn; about 25
-# minutes on 2 cores. The same for other scenarios: `ceiling scenario=random episodes=200`.
+# The clairvoyant ceiling on 200 held-out dense worlds (seeds from 2,000,000) and with every driver stubborn: the strategy
+# library, then its cross-entropy refinement (1.4x the library's processor time); about 30 minutes on 2 cores (estimated
+# from 13 s a world per core before the refinement). The same for other scenarios: `ceiling scenario=dense_deadline
+# episodes=200`; `backend=ray` for a cluster; recorded planner runs as further starts: 'starts=["<dir>/{seed}/steps_admm.csv"]'.
 ceiling: $(STAMP)
 	$(BIN)/ceiling scenario=dense episodes=200 seed=2000000
 
