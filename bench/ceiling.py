@@ -13,6 +13,12 @@ copy of the world until it has merged and kept `settle` more steps without anyon
 far stops early. Each copy drives its own drivers: the world never follows a plan. A diagnostic: it knows what no
 planner can (the hidden decisions, by trial), so no planner should ever beat it on a world.
 
+Then the cross-entropy method (`refine`) over the ego's open-loop controls, from the library's refine.starts lowest
+scores (its best merge, its nearest misses): perturbed control sequences that turn in and follow once merged. With
+`starts` (recorded planner runs' per-step CSVs), each run is replayed open loop on a copy of its world and counted as it
+counted itself, a floor the ceiling never falls below, and refined from where it beats the search; the CSV's `search_*`
+columns are the search without them.
+
 With blind.episodes > 0 it also reports the best fixed strategy (`blind`): every searched strategy is driven on
 blind.episodes other worlds (seeds blind.seed on, never the batch's), and the one with the most courteous merges there
 is driven on each world of the batch. A strategy chosen without the hidden decisions: how much of the ceiling is
