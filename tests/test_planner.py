@@ -134,7 +134,8 @@ def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
 def test_daqp_failure_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
-    crossed = dataclasses.replace(s, core="compiled", delta_box=(0.1, -0.1))  # lower above upper: DAQP refuses the box QP
+    crossed = dataclasses.replace(s, core="compiled")
+    object.__setattr__(crossed, "delta_box", (0.1, -0.1))  # past Settings' check, lower above upper: DAQP refuses the box QP
     result = step.mpc_step(crossed, obs, cv, None, sqp)
     assert "solver failure (DAQP exit flag -" in result.fallback and np.all(np.isfinite(result.u))
 

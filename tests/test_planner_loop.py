@@ -25,7 +25,8 @@ def test_interactive_predictor_merges_and_reports(tmp_path):
     assert admm["t_merge"] < results["nnmpc"]["t_merge"]
     for name in ("steps_admm.csv", "snapshots_admm.png", "controls_admm_nnmpc.png", "trajectory_cost_admm_nnmpc.png"):
         assert (tmp_path / name).stat().st_size > 0
-    runs = mlflow.search_runs(experiment_names=["planner"], filter_string="params.gradients = 'analytic'")
+    runs = mlflow.search_runs(experiment_names=["planner"],  # this run's, not other tests' (a stopped one has no steps)
+                              filter_string=f"params.gradients = 'analytic' and params.out_dir = '{tmp_path}'")
     assert {"admm", "nnmpc"} <= set(runs["params.method"]) and runs["metrics.step_ms_median"].notna().all()
 
 
