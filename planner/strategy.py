@@ -115,7 +115,7 @@ class Rules:
         """The nominal follower, IDMDriver with `follower`'s parameters over its defaults; None without one."""
         return None if self.follower is None else IDMDriver(**self.follower)
 
-    def candidates(self, s: Settings, obs: Observation, warm, source=None) -> list[Start]:
+    def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
         """The shifted plan, ranked after the starts that lean in (offset > 0) and before those that wait in lane (when a
         lean's plan fails or imposes braking, the shifted plan, leaning already, goes on asking the driver behind instead
         of dropping back to the lane centre), then one Start per `starts` entry: ADMM aims at y_ref = the current lane's
