@@ -13,7 +13,7 @@ velocity: the `cv_*` metrics that run logs beside its own; the analytic predicto
 `surrogate` run for the surrogate's gradients, and the latest `interaction` run of the source (bench/interaction.py:
 react_* for its rollout response, react_*_jac for its first-order response).
 
-It prints a short table, the params that tell rows apart and the cells of SHORT (episodes, courteous-merge rate, t_merge,
+It prints a short table, the params that tell rows apart and the cells of SHORT (n_episodes, courteous-merge rate, t_merge,
 fallbacks, gradient error, step time), and writes every column to compare.csv.
 """
 import logging
@@ -227,7 +227,7 @@ def gradient_cell(r: pd.Series) -> str:
     return fmt(r[g], ".3f", r[f"{g}_lo"], r[f"{g}_hi"])
 
 
-SHORT = {"episodes": lambda r: str(r["n_episodes"]),
+SHORT = {"n_episodes": lambda r: str(r["n_episodes"]),
          "courteous % [95% CI]": lambda r: fmt(100 * r["courteous_rate"], ".1f", 100 * r["courteous_lo"], 100 * r["courteous_hi"]),
          "t_merge": lambda r: fmt(r["t_merge"], ".1f"),
          "fallbacks": lambda r: fmt(r["fallbacks"]),
