@@ -20,7 +20,7 @@ from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
 from planner import admm
-from planner.mpc import J_of, Observation, Settings, lane_plan, planned, simulate, start_point
+from planner.mpc import Observation, Settings, costs, lane_plan, planned, simulate, start_point
 
 NONNEG = Real(0)
 
@@ -267,7 +267,8 @@ class Interactive:
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
         in_target = s.road.lane_of(ego[:, :, 1]) == s.road.lane_of(s.y_ref)
         merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, H + 1)
-        J = [J_of(s, obs.u_prev, Delta[k, :s.T_p], alpha[k, :s.T_p], Z[k, :4 * s.T_p]) for k in range(K)]
+        Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
+        J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
         return [Judged(*x) for x in zip(b, braking, merge, J)]
 
     def order(self, s: Settings, judged: list[Judged]) -> list[int]:
