@@ -54,15 +54,13 @@ class KeepAhead:
     """When the nearest target-lane car behind the ego (within `near` m) is seen slowing for it, the lean starts aim at
     that car's speed plus dv instead of their own v, so a driver who yields to the nudge is not overtaken by it (SI)."""
 
-    near: float  # m: how far behind the ego's centre that car's centre may be
-    dv: float  # m/s: kept above its speed
-    slowing: float  # m/s^2: it counts as slowing once it decelerates harder than this over the last observed steps
-    slower: float  # m/s: ... or drives this much slower than the target-lane car ahead of the ego
+    near: float = rule(NONNEG)  # m: how far behind the ego's centre that car's centre may be
+    dv: float = rule(NONNEG)  # m/s: kept above its speed
+    slowing: float = rule(NONNEG)  # m/s^2: it counts as slowing once it decelerates harder than this over the last observed steps
+    slower: float = rule(NONNEG)  # m/s: ... or drives this much slower than the target-lane car ahead of the ego
 
     def __post_init__(self):
-        for key in ("near", "dv", "slowing", "slower"):
-            if not NONNEG.ok(getattr(self, key)):
-                raise UserError(f"mpc.strategy.keep_ahead.{key}={getattr(self, key)}: must be {NONNEG.allowed()}")
+        check_fields(self, "mpc.strategy.keep_ahead")
 
     def speed(self, s: Settings, history):
         """The speed (m/s) of the nearest target-lane car behind the ego, within `near`, when the observed history
