@@ -165,36 +165,43 @@ class Rules:
         return min(plans, key=lambda p: (excess(p[1]), (0, p[1].J) if merges(p[1]) else (1, p[0].rank, p[1].J)))
 
 
-def speeds(s: Settings, history) -> dict:
-    """The observed speeds (m/s) a candidate may hold: the nearest target-lane car behind the ego's and ahead of it, the
-    target lane's mean, and the ego's own, from the last two observed steps of the history (T_obs, SLOTS, 2); a car
-    that is not seen gives no entry."""
+def paces(s: Settings, history, H: int, tau_x: float) -> dict:
+    """The longitudinal profiles a candidate may follow over H steps, from the last two observed steps of the history
+    (T_obs, SLOTS, 2): {name: (v_target (H,) m/s, x_target (H,) m or NaN: speed only)}. Stopped; the ego's own speed;
+    the target lane's mean; and for each gap between two consecutive target-lane cars seen, its middle as both cars
+    would move at their observed speeds, tracked with time constant tau_x (s): where a merge into that gap would start."""
     x, y = history[-1, :, 0], history[-1, :, 1]
     v = (x - history[-2, :, 0]) / s.params.dt
+    t = np.arange(1, H + 1) * s.params.dt
+    speed = lambda u: (np.full(H, u), np.full(H, np.nan))
+    out = {"stop": speed(0.0), "own": speed(v[0])}
     target = np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
-    out = {"own": float(v[0])}
     if len(target):
-        out["stream"] = float(v[target].mean())
-        behind, ahead = target[x[target] <= x[0]], target[x[target] > x[0]]
-        if len(behind):
-            out["behind"] = float(v[behind[np.argmax(x[behind])]])
-        if len(ahead):
-            out["ahead"] = float(v[ahead[np.argmin(x[ahead])]])
+        out["stream"] = speed(v[target].mean())
+    target = target[np.argsort(x[target])]
+    for back, front in zip(target[:-1], target[1:]):
+        v_gap = 0.5 * (v[back] + v[front])
+        middle = 0.5 * (x[back] + x[front]) + v_gap * t
+        name = f"gap {x[back] - x[0]:+.0f}..{x[front] - x[0]:+.0f} m"
+        out[name] = (np.full(H, v_gap), middle)
     return out
 
 
-def track(s: Settings, z0, y_target, v_target, tau: float):
+def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x: float = 1.0):
     """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
     (K, H) in m, their heading held within psi_box, while their speed approaches v_target (K, H) in m/s with time
-    constant tau (s) within a_box, never reversing."""
+    constant tau (s) within a_box, never reversing; where x_target (K, H) in m is given (not NaN), the speed aimed at
+    also closes the distance to it with time constant tau_x (s)."""
     K, H = y_target.shape
+    x_target = np.full((K, H), np.nan) if x_target is None else x_target
     z = np.repeat(np.asarray(z0, float)[None], K, 0)
     Delta, alpha, Z, p = [], [], [], s.params
     for k in range(H):
         v = np.maximum(z[:, 3], 1.0)
         psi_d = np.clip(np.arctan(0.6 * (y_target[:, k] - z[:, 1]) / v), *s.psi_box)
         d = np.clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, *s.delta_box)
-        a = np.maximum(np.clip((v_target[:, k] - z[:, 3]) / tau, *s.a_box), -z[:, 3] / p.dt)
+        v_aim = np.maximum(0.0, v_target[:, k] + np.nan_to_num((x_target[:, k] - z[:, 0]) / tau_x))
+        a = np.maximum(np.clip((v_aim - z[:, 3]) / tau, *s.a_box), -z[:, 3] / p.dt)
         z = bicycle.step(z, np.stack([d, a], -1), p)
         Delta.append(d)
         alpha.append(a)
@@ -204,7 +211,7 @@ def track(s: Settings, z0, y_target, v_target, tau: float):
 
 class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
-    imposes on another car (m/s^2), the first step in the target lane (horizon + 1: none) and its cost J over T_p."""
+    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; horizon + 1: none) and its cost J over T_p."""
 
     b_min: float
     braking: float
@@ -215,8 +222,9 @@ class Judged(NamedTuple):
 @dataclass(frozen=True)
 class Interactive:
     """mpc=interactive: no behaviour rule. Candidate plans (wait in lane, lean towards the target lane by `lean`, or lean
-    and then steer into it after each of `merge_steps`, each at the speeds a candidate may hold: stopped, its own, the
-    nearest target-lane car's behind and ahead, the stream's mean; entering, the pace of the car ahead) are rolled out by the predictor over `horizon` steps
+    and then steer into it after each of `merge_steps`, each with a longitudinal profile (`paces`): stopped, its own
+    speed, the stream's, or closing on the middle of a gap between two target-lane cars) are rolled out by the predictor
+    over `horizon` steps
     (beyond T_p, so a plan that positions for a later merge has a value). A candidate counts when the predicted others
     stay outside the safety shape and nobody is predicted to brake harder than b_courtesy; among those the earliest
     merge, then the lowest J. The best `refine` are refined by ADMM (Algorithm 1) towards their own aim and also offered
@@ -226,7 +234,9 @@ class Interactive:
     merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
     horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges a candidate; at least T_p
     tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
+    tau_x: float = rule(Real(0, lo_open=True))  # s: time constant of a gap-targeting candidate closing on the gap's middle
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
+    merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
 
     def __post_init__(self):
         check_fields(self, "mpc.strategy")
@@ -239,13 +249,13 @@ class Interactive:
         lateral = {"merged": np.full(H, s.y_ref)} if towards == 0 else {
             "wait": np.full(H, lane_y), "lean": np.full(H, lane_y + towards * self.lean),
             **{f"merge after {m}": np.where(np.arange(H) < m, lane_y + towards * self.lean, s.y_ref) for m in self.merge_steps}}
-        v_of = {"stop": 0.0, **speeds(s, obs.history)}
-        v_in = v_of.get("ahead", v_of.get("stream", v_of["own"]))  # entering the lane: the pace of the car it follows
-        names = [f"{lat}, v {v_name} {v:.1f} m/s" for lat in lateral for v_name, v in v_of.items()]
-        y_t = np.array([lateral[lat] for lat in lateral for _ in v_of])
-        v_t = np.where(y_t == s.y_ref, v_in, np.array([v for _ in lateral for v in v_of.values()])[:, None])
-        Delta, alpha, Z = track(s, obs.z0, y_t, v_t, self.tau)
-        aims = [(y[s.T_p - 1], v[s.T_p - 1]) for y, v in zip(y_t, v_t)]
+        pace = paces(s, obs.history, H, self.tau_x)
+        names = [f"{lat}, {p}" for lat in lateral for p in pace]
+        y_t = np.array([lateral[lat] for lat in lateral for _ in pace])
+        v_t = np.array([v for _ in lateral for v, _ in pace.values()])
+        x_t = np.array([x for _ in lateral for _, x in pace.values()])
+        Delta, alpha, Z = track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x)
+        aims = [(y[s.T_p - 1], z[4 * s.T_p - 1]) for y, z in zip(y_t, Z)]  # its lateral target, the speed it reaches
         if warm is not None:  # the shifted previous plan, its last control held beyond it
             prev = start_point(s, obs, warm)[0]
             hold = lambda u: np.concatenate([u, np.full(H - s.T_p, u[-1])])
@@ -263,7 +273,7 @@ class Interactive:
         b = [b_i(v, s.R, s.stretch, s.shape).min(initial=np.inf) for v in values]
         history = np.broadcast_to(obs.history, (K, *np.shape(obs.history)))
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
-        in_target = s.road.lane_of(ego[:, :, 1]) == s.road.lane_of(s.y_ref)
+        in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
         merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, H + 1)
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]

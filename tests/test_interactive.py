@@ -5,7 +5,7 @@ import pytest
 
 from planner import mpc, step
 from planner.setup import make
-from planner.strategy import Interactive, Judged, speeds
+from planner.strategy import Interactive, Judged, paces, track
 
 DT = 0.2
 
@@ -56,11 +56,25 @@ def best(s, obs, source):
     return names[k], judged[k]
 
 
-def test_the_speeds_a_candidate_may_hold_are_those_observed():
+def test_the_paces_a_candidate_may_follow_are_those_observed_and_the_gaps_between_target_lane_cars():
     s, obs = world(4.5, 4.5)
     obs.history[:, 2, 0] -= np.arange(-7, 1) * DT * 1.0  # the car behind drives at 4 m/s
-    assert speeds(s, obs.history) == pytest.approx({"own": 5.0, "stream": 5.0 * 3 / 4 + 4.0 / 4, "behind": 4.0, "ahead": 5.0})
-    assert set(speeds(s, obs.history[:, :1])) == {"own"}  # nobody seen in the target lane
+    pace = paces(s, obs.history, 10, tau_x=2.0)
+    assert list(pace) == ["stop", "own", "stream", "gap -24..-14 m", "gap -14..-4 m", "gap -4..+4 m"]
+    assert pace["stream"][0] == pytest.approx(np.full(10, (4.0 + 3 * 5.0) / 4)) and np.isnan(pace["own"][1]).all()
+    v, middle = pace["gap -4..+4 m"]  # between the car behind (4 m/s) and the one ahead (5 m/s)
+    t = np.arange(1, 11) * DT
+    assert v == pytest.approx(np.full(10, 4.5)) and middle == pytest.approx(0.5 * (-4.5 + 4.5) + 4.5 * t)
+    assert list(paces(s, obs.history[:, :1], 10, 2.0)) == ["stop", "own"]  # nobody seen in the target lane
+
+
+def test_a_gap_targeting_candidate_closes_on_the_gap_s_middle():
+    s, obs = world(4.5, 4.5)
+    H = 40
+    x_t = np.full((1, H), -10.0) + 5.0 * np.arange(1, H + 1) * DT  # a middle 10 m behind, moving at 5 m/s
+    Z = track(s, obs.z0, np.zeros((1, H)), np.full((1, H), 5.0), 1.0, x_t, tau_x=2.0)[2].reshape(H, 4)
+    assert Z[-1, 0] - x_t[0, -1] == pytest.approx(0.0, abs=1.0) and Z[:, 3].min() >= 0.0  # dropped back, never reversed
+    assert abs(Z[0, 0] - x_t[0, 0]) > 9.0
 
 
 def test_a_predictor_that_sees_the_driver_behind_yield_merges_where_constant_velocity_waits():
