@@ -340,10 +340,9 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
     "T_obs": Int(2, 21), "n_slots": Int(1), "plots": Bool(), "record_dir": Text(nullable=True), "tolerate_crashes": Bool(),
     # mpc: the values planner.mpc.Settings and planner.strategy check on their fields, but for the nodes they take whole
-    "mpc.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
-    "mpc.admm.max_iters": Int(1), "mpc.admm.tol_F": POS, "mpc.admm.tol_step": POS,
-    "mpc.osqp.eps_abs": POS, "mpc.osqp.eps_rel": POS, "mpc.osqp.max_iter": Int(1), "mpc.osqp.polishing": Bool(),
-    "mpc.osqp.adaptive_rho_interval": Int(0, optional=True),
+    "mpc.admm.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
+    "mpc.admm.osqp.eps_abs": POS, "mpc.admm.osqp.eps_rel": POS, "mpc.admm.osqp.max_iter": Int(1),
+    "mpc.admm.osqp.polishing": Bool(), "mpc.admm.osqp.adaptive_rho_interval": Int(0, optional=True),
     "zstep.settings.reuse_radius": Real(0, optional=True),
     **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (

@@ -372,21 +372,21 @@ def certified_rho(path, scenario):
     path = Path(path)
     recover(path.parent)  # the student's set a stopped distill committed but did not finish moving in
     if not path.is_file():
-        raise UserError(f"mpc.rho=certified: no certificate at {path}; run `distill model=student` first")
+        raise UserError(f"mpc.admm.rho=certified: no certificate at {path}; run `distill model=student` first")
     try:
         doc = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise UserError(f"mpc.rho=certified: {path} is not a readable certificate ({type(e).__name__}: {e}); "
+        raise UserError(f"mpc.admm.rho=certified: {path} is not a readable certificate ({type(e).__name__}: {e}); "
                         "rerun `distill model=student`") from None
     scenarios = doc.get("scenarios") if isinstance(doc, dict) else None
     if not isinstance(scenarios, dict):
-        raise UserError(f"mpc.rho=certified: {path} has no `scenarios` object; rerun `distill model=student`")
+        raise UserError(f"mpc.admm.rho=certified: {path} has no `scenarios` object; rerun `distill model=student`")
     if scenario not in scenarios:
-        raise UserError(f"mpc.rho=certified: {path} has no bound for scenario {scenario} "
+        raise UserError(f"mpc.admm.rho=certified: {path} has no bound for scenario {scenario} "
                         f"(it certifies {', '.join(scenarios) or 'none'}); rerun `distill model=student`")
     bound = scenarios[scenario].get("rho_bound") if isinstance(scenarios[scenario], dict) else None
     rho = float(bound) if isinstance(bound, (int, float)) and not isinstance(bound, bool) else math.nan
     if not (math.isfinite(rho) and rho > 0):
-        raise UserError(f"mpc.rho=certified: the certified rho for {scenario} in {path} is {bound}, not a usable penalty "
+        raise UserError(f"mpc.admm.rho=certified: the certified rho for {scenario} in {path} is {bound}, not a usable penalty "
                         "(a number > 0)")
     return rho

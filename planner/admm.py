@@ -2,10 +2,12 @@
 
 The step's maths (Problem: arrays and floats only) and its sub-problem solvers (Solvers: OSQP objects, the Z-step) are
 held apart; every kernel takes (problem, solvers, state)."""
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from core.validate import Int, OneOf, Real, check_fields, rule
 from planner.cost import Quadratic
 from planner.dynamics import Dynamics
 from planner.qp import BoxQP
@@ -21,13 +23,21 @@ class ADMMState(NamedTuple):
     zstate: Any = None
 
 
-class ADMMSettings(NamedTuple):
-    """When admm_solve stops: iteration cap, ||F|| (state units) and iterate change (inf-norm); the values live in
-    conf/planner.yaml (mpc.admm)."""
+@dataclass(frozen=True)
+class Settings:
+    """The solver's settings, the `mpc.admm` node of conf/mpc/ (the one home of every value): the penalty, the core that
+    runs the maths, when admm_solve stops and the sub-problems' OSQP settings; each value checked here, one UserError
+    naming the key."""
 
-    max_iters: int
-    tol_F: float
-    tol_step: float
+    rho: float = rule(Real(0, lo_open=True))  # ADMM penalty (mpc.admm.rho=certified: planner.setup resolves it)
+    core: str = rule(OneOf(("compiled", "reference")))  # compiled (numba kernels, DAQP) | reference (numpy, OSQP)
+    max_iters: int = rule(Int(1))  # ADMM iterations at most
+    tol_F: float = rule(Real(0, lo_open=True))  # ||F|| (state units) to stop at
+    tol_step: float = rule(Real(0, lo_open=True))  # iterate change (inf-norm) to stop at
+    osqp: dict  # OSQP settings of every sub-problem
+
+    def __post_init__(self):
+        check_fields(self, "mpc.admm")
 
 
 class Problem(NamedTuple):

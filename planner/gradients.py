@@ -15,6 +15,8 @@ from core.jobs import CONF_DIR, UserError, atomic_file, options
 from core.rollout import rollout, rollout_jacobian
 from core.validate import TRAINED_PREDICTORS
 
+COMPILED_PREDICTORS = ("cv", "student")  # the predictors whose rollout planner.jit_rollout writes as numba kernels
+
 
 class Source:
     """Values from the predictor's own recursion; subclasses say where the derivative comes from."""
@@ -23,6 +25,7 @@ class Source:
     torch_rollout = False  # `module` and `dtype` give a torch rollout autograd can differentiate (zstep=pygranso)
     needs_world = False  # reads the running world (the oracle): only the planner's closed loop, world=reactive
     differentiates = False  # derives from the predictor's forward pass alone, so it works over any predictor
+    compiled = False  # the compiled core runs its rollout and chain rule itself (planner.jit_rollout.KERNELS)
 
     def __init__(self, name, predictor):
         self.name, self.predictor = name, predictor
@@ -37,11 +40,25 @@ class Source:
         """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), metres: the predictor's."""
         return self.predictor.phi(window)
 
+    def local_jacobians(self):
+        """phi_jac(windows) -> (next xy, local J) from Python that the compiled chain rule composes; None: none, the
+        source's own `jacobian` is called."""
+        return None
+
 
 class ExactLocal(Source):
     """The predictor's own exact local Jacobians (phi_jac), composed by the rollout chain rule."""
 
     joint = True  # phi_jac gives the values too, at a small multiple of phi's cost
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled core runs this source itself: its predictor's rollout is written as numba kernels."""
+        return self.predictor.name in COMPILED_PREDICTORS
+
+    def local_jacobians(self):
+        """The predictor's phi_jac."""
+        return self.predictor.phi_jac
 
     def jacobian(self, history, ego_future):
         """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2)."""
@@ -60,6 +77,10 @@ class Surrogate(Source):
         """Next xy (B, SLOTS, 2); a fused export runs the predictor's forward pass itself (onnxruntime: ~4x faster than
         torch eager at batch 1, equal to ~1e-6 m)."""
         return self.surrogate.phi_jac(window)[0] if self.surrogate.fused else self.predictor.phi(window)
+
+    def local_jacobians(self):
+        """A fused export's phi_jac (values and J in one onnxruntime call); None unfused."""
+        return self.surrogate.phi_jac if self.surrogate.fused else None
 
     def jacobian(self, history, ego_future):
         """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2) with the surrogate's local Jacobians."""
@@ -156,14 +177,20 @@ class WorldOracle(CentralDifferences):
 
 class Recording:
     """A gradient source that keeps every (history, ego plan) it is linearised at: the planner's own iterates, as
-    training and test states for the surrogate (`planner record_dir=...`). Everything else is the wrapped source's; the
-    compiled planner core does not know this class, so the step runs on the Python path that calls `jacobian`."""
+    training and test states for the surrogate (`planner record_dir=...`). Everything else is the wrapped source's, but
+    it runs neither compiled nor by its local Jacobians: the step takes the Python path that calls `jacobian`."""
+
+    compiled = False
 
     def __init__(self, source):
         self.source, self.histories, self.plans = source, [], []
 
     def __getattr__(self, name):
         return getattr(self.source, name)
+
+    def local_jacobians(self):
+        """None: every linearisation goes through `jacobian`, which keeps it."""
+        return None
 
     def jacobian(self, history, ego_future):
         """The wrapped source's values and Jacobian (m, m/m), with the state they are taken at kept."""

@@ -10,9 +10,7 @@ from numba import njit
 from numba.typed import List
 
 from core.rollout import rollout_jacobian
-from distill.models import StudentPredictor
-from distill.predictors import ConstantVelocity
-from planner.gradients import ExactLocal, Surrogate
+from planner import safety
 from planner.jit_linalg import matmul, matvec
 
 
@@ -157,23 +155,23 @@ def cv_params():
     return typed([np.zeros((1, 1))]), typed([np.zeros(1)]), np.zeros(0)
 
 
+def student_params(predictor):
+    """`predicted`'s (Ws, bs, s) of a StudentPredictor from its float64 weights, built once per student (typed lists are
+    slow to build from Python)."""
+    if predictor not in _student_params:
+        _student_params[predictor] = (typed(W for W, _ in predictor.weights), typed(b for _, b in predictor.weights),
+                                      np.ascontiguousarray(predictor.s))
+    return _student_params[predictor]
+
+
+_student_params = WeakKeyDictionary()  # student_params of each live StudentPredictor
+KERNELS = {"cv": lambda predictor: cv_params(), "student": student_params}  # `predicted`'s weights per compiled predictor
+
+
 def compiled_params(source):
-    """`predicted`'s (Ws, bs, s) for a source that differentiates its predictor's own exact local Jacobians and that
-    the compiled core runs itself (cv, student); None for the others, whose Jacobians come from Python."""
-    if not isinstance(source, ExactLocal):
-        return None
-    if isinstance(source.predictor, ConstantVelocity):
-        return cv_params()
-    if isinstance(source.predictor, StudentPredictor):
-        if source.predictor not in _student_params:  # typed lists are slow to build from Python: once per student
-            _student_params[source.predictor] = (typed(W for W, _ in source.predictor.weights),
-                                                 typed(b for _, b in source.predictor.weights),
-                                                 np.ascontiguousarray(source.predictor.s))
-        return _student_params[source.predictor]
-    return None
-
-
-_student_params = WeakKeyDictionary()  # compiled_params of each live StudentPredictor
+    """`predicted`'s (Ws, bs, s) for a source that declares it runs compiled (planner.gradients: cv, the student); None
+    for the others, whose Jacobians come from Python."""
+    return KERNELS[source.predictor.name](source.predictor) if source.compiled else None
 
 
 def compiled_jacobian(source):
@@ -185,17 +183,18 @@ def compiled_jacobian(source):
     return lambda history, ego: predicted(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
 
 
+def values(source, history, ego):
+    """planner.safety.values, by the compiled rollout for a source that runs compiled (values and J in ~0.1 ms)."""
+    compiled = compiled_jacobian(source)
+    return compiled(history, ego)[0] if compiled else safety.values(source, history, ego)
+
+
 def compiled_chain(source):
-    """jacobian(history, ego) for a source whose local Jacobians come from Python (another ExactLocal predictor, a fused
-    surrogate export): its windows' values and Jacobians as the source has them, composed by the compiled chain_rule;
-    None for the others (autodiff, differences: their own `jacobian`)."""
-    if isinstance(source, ExactLocal):
-        phi_jac = source.predictor.phi_jac
-    elif isinstance(source, Surrogate) and source.surrogate.fused:
-        phi_jac = source.surrogate.phi_jac
-    else:
-        return None
-    return lambda history, ego: rollout_jacobian(phi_jac, history, ego, chain=chain_rule)
+    """jacobian(history, ego) for a source whose local Jacobians come from Python (planner.gradients: another exact
+    predictor, a fused surrogate export): its windows' values and Jacobians as the source has them, composed by the
+    compiled chain_rule; None for the others (autodiff, differences: their own `jacobian`)."""
+    phi_jac = source.local_jacobians()
+    return None if phi_jac is None else lambda history, ego: rollout_jacobian(phi_jac, history, ego, chain=chain_rule)
 
 
 @njit(cache=True)

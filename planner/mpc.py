@@ -1,10 +1,11 @@
-"""The MPC step's problem: its settings (eq. (5)-(8), Algorithm 1's knobs, the safeguard's), what the planner sees, what
+"""The MPC step's problem: its settings (eq. (5)-(8); Algorithm 1's, the safeguard's and the strategy's nodes), what the planner sees, what
 a step returns, and the paper's maths about one observation: the costs, boxes, linearisation and ADMM's set-up.
 
 How a step runs (candidate starts -> ADMM -> safeguard -> choose) is planner.step; the safeguard (check, repair,
 fallback) planner.safeguard; which plans to start from and how to choose among them, planner.strategy.
 """
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -14,7 +15,7 @@ from core.rollout import b_i
 from core.validate import Bool, Int, OneOf, Range, Real, check_fields, rule
 from data import bicycle
 from data.world import Road, steer_to
-from planner import admm, cost, dynamics, jit_zstep
+from planner import admm, cost, dynamics, jit_admm, jit_rollout, jit_zstep, safety
 from planner.jit_zstep import CompiledSafety
 from planner.safety import Safety
 
@@ -22,13 +23,44 @@ POS, NONNEG, PAIR = Real(0, lo_open=True), Real(0), Range(strict=True)
 
 
 @dataclass(frozen=True)
+class Safeguard:
+    """The safeguard's settings (planner.safeguard: the check of a solved plan, its repair, the fallback), the
+    `mpc.safeguard` node; each value checked here, one UserError naming the key."""
+
+    check_tol: float = rule(NONNEG)  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
+    check_steps: int = rule(Int(0))  # steps of that rollout checked: only its start is ever applied, the rest is replanned
+    check_relative: bool = rule(Bool())  # also accept a plan no less safe than braking in lane (safeguard.acceptable)
+    repair_iters: int = rule(Int(0))  # repair steps (planner.repair) for a plan that fails the check; 0: none, the paper
+    repair_margin: float = rule(NONNEG)  # b_i (m^2) a repair step aims for on the linearised rollout
+    brake: float = rule(Real(hi=0, hi_open=True))  # deceleration of the braking-in-lane fallback (m/s^2)
+
+    def __post_init__(self):
+        check_fields(self, "mpc.safeguard")
+
+
+class Core(NamedTuple):
+    """How a step's maths runs (mpc.admm.core), chosen once when its Settings are built: the Safety class, the Z-step
+    this core runs for a conf/zstep/ class, the ADMM solve, and the predictor's values under a plan (the safeguard's
+    check)."""
+
+    safety: type
+    zstep: Callable
+    solve: Callable
+    values: Callable  # (source, history (T_obs, SLOTS, 2), ego xy (T_p, 2)) -> values (T_p, SLOTS, 2)
+
+
+CORES = {"reference": Core(Safety, lambda zstep: zstep, admm.admm_solve, safety.values),
+         "compiled": Core(CompiledSafety, jit_zstep.compiled, jit_admm.admm_solve, jit_rollout.values)}
+
+
+@dataclass(frozen=True)
 class Settings:
     """One step's settings in SI units, data only, built from the `planner` config's `mpc` node (its YAML is the one home of
-    every value; planner.setup passes the scenario's y_ref, v_ref, road and params); each value is checked here, one
-    UserError naming the key."""
+    every value; planner.setup passes the scenario's y_ref, v_ref, road and params): the problem, eq. (5)-(8) about one
+    observation, here; the solver (`admm`), the safeguard and the strategy in their own nodes. Each value is checked
+    where it is defined, one UserError naming the key."""
 
     name: str  # the conf/mpc/ option (MLflow param `mpc`): paper | courteous | ...
-    # The problem: eq. (5)-(8) about one observation
     weights: cost.Weights
     y_ref: float  # m
     v_ref: float  # m/s
@@ -47,22 +79,13 @@ class Settings:
     v_box: tuple = rule(PAIR)  # m/s
     y_margin: float = rule(NONNEG)  # how far the ego's centre may leave the outer lane centres (m)
     linearize: str = rule(OneOf(("last_observed", "along_plan")))
-    # The solver: Algorithm 1
-    rho: float = rule(POS)  # ADMM penalty
-    core: str = rule(OneOf(("compiled", "reference")))  # compiled (numba kernels, DAQP) | reference (numpy, OSQP)
-    admm: admm.ADMMSettings  # planner.admm.admm_solve's max_iters, tol_F, tol_step
-    osqp: dict  # OSQP settings of every sub-problem
-    # The safeguard (planner.safeguard): the check of a solved plan, its repair, the fallback
-    check_tol: float = rule(NONNEG)  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
-    check_steps: int = rule(Int(0))  # steps of that rollout checked: only its start is ever applied, the rest is replanned
-    check_relative: bool = rule(Bool())  # also accept a plan no less safe than braking in lane (safeguard.acceptable)
-    repair_iters: int = rule(Int(0))  # repair steps (planner.repair) for a plan that fails the check; 0: none, the paper
-    repair_margin: float = rule(NONNEG)  # b_i (m^2) a repair step aims for on the linearised rollout
-    brake: float = rule(Real(hi=0, hi_open=True))  # deceleration of the braking-in-lane fallback (m/s^2)
-    # The strategy: which plans to solve from and which to apply (planner.strategy)
-    strategy: Any
+    admm: admm.Settings  # the solver: Algorithm 1's penalty, core, stopping and OSQP settings
+    safeguard: Safeguard  # the check, repair and fallback every solver's plan passes
+    strategy: Any  # which plans to solve from and which to apply (planner.strategy)
+    core: Core = field(init=False, repr=False, compare=False)  # admm.core's implementation
 
     def __post_init__(self):
+        object.__setattr__(self, "core", CORES[self.admm.core])
         check_fields(self, "mpc")
         check_shape(self)
 
@@ -164,8 +187,8 @@ def lane_plan(s: Settings, z0, a):
 
 
 def brake_plan(s: Settings, z0):
-    """Controls Delta, alpha (T_p,) that hold the current lane (lane_plan) braking at s.brake to a stop."""
-    return lane_plan(s, z0, s.brake)
+    """Controls Delta, alpha (T_p,) that hold the current lane (lane_plan) braking at s.safeguard.brake to a stop."""
+    return lane_plan(s, z0, s.safeguard.brake)
 
 
 def planned(s: Settings, z0, Delta, alpha) -> admm.ADMMState:
@@ -199,11 +222,7 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
     with its settings bound) and the ADMM start, Z clipped to the state box: `start`, or start_point's from warm."""
     start = start_point(s, obs, warm)[0] if start is None else start
     lo, hi = state_box(s)
-    prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.rho), tuple(s.delta_box),
+    prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.admm.rho), tuple(s.delta_box),
                         tuple(s.a_box), lo, hi)
-    if s.core == "compiled":
-        safety = CompiledSafety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape)
-        solvers = admm.solvers(prob, jit_zstep.compiled(zstep), safety, s.osqp)
-    else:
-        solvers = admm.solvers(prob, zstep, Safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape), s.osqp)
-    return prob, solvers, start._replace(Z=np.clip(start.Z, lo, hi))
+    safety = s.core.safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape)
+    return prob, admm.solvers(prob, s.core.zstep(zstep), safety, s.admm.osqp), start._replace(Z=np.clip(start.Z, lo, hi))

@@ -5,21 +5,19 @@ import numpy as np
 from scipy import linalg
 
 from core.rollout import accelerations, b_i, ego_xy
-from planner import admm, jit_rollout, repair
+from planner import admm, repair
 from planner.mpc import J_of, Observation, Settings, StepResult, brake_plan, costs, shift, simulate
 
 
 def rollout(s: Settings, obs: Observation, source, Delta, alpha):
     """The nonlinear rollout Z of (Delta, alpha) and the predictor's values (T_p, SLOTS, 2) under it."""
     Z = simulate(obs.z0, Delta, alpha, s.params)
-    ego = ego_xy(Z, s.T_p)
-    compiled = jit_rollout.compiled_jacobian(source) if s.core == "compiled" else None  # cv, student: values and J in ~0.1 ms
-    return Z, compiled(obs.history, ego)[0] if compiled else source.values(obs.history, ego[None])[0]
+    return Z, s.core.values(source, obs.history, ego_xy(Z, s.T_p))
 
 
 def checked_b(s: Settings, values) -> float:
     """min b_i (m^2) over the first check_steps of a rollout's predictor values (T_p, SLOTS, 2)."""
-    return float(b_i(values, s.R, s.stretch, s.shape)[:, :s.check_steps].min(initial=np.inf))
+    return float(b_i(values, s.R, s.stretch, s.shape)[:, :s.safeguard.check_steps].min(initial=np.inf))
 
 
 def plan_safe(s: Settings, obs: Observation, source, Delta, alpha):
@@ -33,9 +31,9 @@ def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
     check_relative no worse than braking in lane (its b_min, capped at 0, minus check_tol). Beside a car that stops to
     let a straddling ego in, every plan breaks b_i >= 0 for a while; judged against zero they all fail, and braking to a
     stop there waits for a car that waits for the ego."""
-    if b_min >= -s.check_tol:
+    if b_min >= -s.safeguard.check_tol:
         return True
-    return s.check_relative and b_min >= min(0.0, plan_safe(s, obs, source, *brake_plan(s, obs.z0))[0]) - s.check_tol
+    return s.safeguard.check_relative and b_min >= min(0.0, plan_safe(s, obs, source, *brake_plan(s, obs.z0))[0]) - s.safeguard.check_tol
 
 
 def imposed(s: Settings, obs: Observation, values) -> float:
@@ -46,15 +44,15 @@ def imposed(s: Settings, obs: Observation, values) -> float:
 
 def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):
     """The plan st with its controls repaired (planner.repair) until its checked rollout is acceptable, at most
-    s.repair_iters steps, with its min b_i (m^2) and the predictor's values under it; None when no repair passes."""
+    s.safeguard.repair_iters steps, with its min b_i (m^2) and the predictor's values under it; None when no repair passes."""
     Phi_1, Phi_2, _ = costs(s, obs.u_prev)
     W = linalg.block_diag(Phi_1.P, Phi_2.P)
     Delta, alpha = st.Delta, st.alpha
-    for _ in range(s.repair_iters):
+    for _ in range(s.safeguard.repair_iters):
         Z = simulate(obs.z0, Delta, alpha, s.params)
         b, Jb = safety.linearize(Z)
         Delta, alpha = repair.repair_step(obs.z0, Delta, alpha, Z, b[:safety.n_b], Jb[:safety.n_b], s.params, W,
-                                          s.delta_box, s.a_box, s.check_steps, s.repair_margin, s.osqp)
+                                          s.delta_box, s.a_box, s.safeguard.check_steps, s.safeguard.repair_margin, s.admm.osqp)
         Z, values = rollout(s, obs, source, Delta, alpha)
         b_min = checked_b(s, values)
         if acceptable(s, obs, source, b_min):
@@ -76,7 +74,7 @@ def fallback(s: Settings, obs: Observation, source, warm, why: str) -> StepResul
                               J=J_of(s, obs.u_prev, prev.Delta, prev.alpha, Z), iters=0, reason="fallback", F_norm=np.nan,
                               b_min=b_min, slack=np.nan, fallback=f"{why}; shifted previous plan")
     if not z_ok:
-        return StepResult(u=np.array([0.0, s.brake]), plan=None, J=np.nan, iters=0, reason="fallback", F_norm=np.nan,
+        return StepResult(u=np.array([0.0, s.safeguard.brake]), plan=None, J=np.nan, iters=0, reason="fallback", F_norm=np.nan,
                           b_min=np.nan, slack=np.nan, fallback=f"{why}; braking straight")
     Delta, alpha = brake_plan(s, obs.z0)
     Z = simulate(obs.z0, Delta, alpha, s.params)

@@ -5,6 +5,11 @@ import numpy as np
 from core.rollout import accelerations, b_i, b_i_jacobian, courtesy_jacobian, ego_xy
 
 
+def values(source, history, ego):
+    """The predictor's rollout values (T_p, SLOTS, 2) under one ego plan's xy (T_p, 2), from the source's own rollout."""
+    return source.values(history, ego[None])[0]
+
+
 class Safety:
     """The constraint rows of one MPC step, b_i(Z) (N*T_p, m^2) then, with `courtesy` = (dt s, b_c m/s^2), c_i(Z)
     (N*T_p, m/s^2): the gradient source's predictions from `history`, radius R (m) across the road and stretch * R

@@ -17,10 +17,10 @@ def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
 
 
 def rho(cfg: DictConfig, scenario) -> float:
-    """ADMM's rho: cfg.mpc.rho, or for mpc.rho=certified Theorem 1's bound that models/certificate.json gives the
-    scenario (the student's certificate, whatever the gradient source)."""
-    if cfg.mpc.rho != "certified":
-        return cfg.mpc.rho
+    """ADMM's rho: cfg.mpc.admm.rho, or for mpc.admm.rho=certified Theorem 1's bound that models/certificate.json gives
+    the scenario (the student's certificate, whatever the gradient source)."""
+    if cfg.mpc.admm.rho != "certified":
+        return cfg.mpc.admm.rho
     return certificate.certified_rho(Path(cfg.models_dir) / "certificate.json", scenario.name)
 
 
@@ -28,8 +28,8 @@ def settings(cfg: DictConfig, scenario) -> mpc.Settings:
     """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters; each value checked
     where it is defined (planner.mpc.Settings, planner.strategy), one UserError naming the key."""
     # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
-    return build(cfg.mpc, _partial_=True)(y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road,
-                                          params=scenario.params, rho=rho(cfg, scenario))
+    return build(cfg.mpc, _partial_=True, admm={"rho": rho(cfg, scenario)})(
+        y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road, params=scenario.params)
 
 
 def setup(cfg: DictConfig):

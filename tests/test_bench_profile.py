@@ -20,7 +20,7 @@ def test_profile_counts_osqp_solves_and_splits_the_step(monkeypatch):
     z = scenario.make_world(0).z
     z[0, 1], z[0, 2] = 1.6, 0.15  # nudged towards the platoon, so the safety constraints are active
     states = [PlanningState("two_lane", mpc.Observation(z[0].copy(), np.zeros(2), backfill(z, 8, 0.2)), None)]
-    reference = lambda scenario: settings(scenario, ("mpc.core=reference",))  # the numpy and OSQP core
+    reference = lambda scenario: settings(scenario, ("mpc.admm.core=reference",))  # the numpy and OSQP core
     solver_step()(reference("two_lane"), states[0].obs, source, None)  # first-call costs (imports, set-ups) stay out
     counted = []
     solve = qp.QP.solve

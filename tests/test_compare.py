@@ -67,15 +67,15 @@ def test_rows_split_by_setup_and_accuracy_follows_the_predictor(store):
             "episodes": "0"}
     ok = {"merged": 1, "collision": 0, "step_ms_median": 5.0, "step_ms_p95": 9.0, "t_merge": 11, "C_max": 60, "d_min_m": 4.0}
     for steps, rho in [("60", "100"), ("60", "100"), ("2", "100"), ("60", "0.0")]:
-        log("planner", {**base, "gradients": "cv", "predictor": "cv", "max_steps": steps, "mpc.rho": rho}, ok)
-    log("planner", {**base, "gradients": "surrogate", "predictor": "teacher", "max_steps": "60", "mpc.rho": "100"},
+        log("planner", {**base, "gradients": "cv", "predictor": "cv", "max_steps": steps, "mpc.admm.rho": rho}, ok)
+    log("planner", {**base, "gradients": "surrogate", "predictor": "teacher", "max_steps": "60", "mpc.admm.rho": "100"},
         {**ok, "episodes": 40, "merged": 0.75})
     log("distill", {"model": "teacher"}, {"ade_1step_m": 0.002, "ade_rollout_m": 0.04, "cv_ade_1step_m": 0.007,
                                           "cv_ade_rollout_m": 0.107})
     log("interaction", {"source": "cv"}, {"react_corr": 0.0, "react_corr_jac": 0.0, "react_hit": 0.1})
     log("interaction", {"source": "surrogate"}, {"react_corr": 0.6, "react_corr_jac": 0.3, "react_hit": 0.4})
     df = run(compose_cfg("compare", [f"out_dir={store}"]))
-    cv = df[df["gradients"] == "cv"].set_index(["max_steps", "mpc.rho"])
+    cv = df[df["gradients"] == "cv"].set_index(["max_steps", "mpc.admm.rho"])
     assert len(cv) == 3 and list(cv.loc[("60", "100"), ["n_runs", "n_episodes"]]) == [2, 2]  # only the two equal runs pooled
     assert cv.loc[("2", "100"), "n_runs"] == 1 and cv.loc[("60", "0.0"), "n_runs"] == 1
     assert (cv["ade_rollout_m"] == 0.107).all() and cv["react_corr_jac"].eq(0.0).all()  # constant velocity's, not the teacher's

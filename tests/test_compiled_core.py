@@ -1,4 +1,4 @@
-"""The compiled core (mpc.core=compiled: numba kernels, DAQP) gives the reference core's plans (numpy, OSQP solved
+"""The compiled core (mpc.admm.core=compiled: numba kernels, DAQP) gives the reference core's plans (numpy, OSQP solved
 tight) on saved planning states for every source it runs, and its compiled rollouts, network Jacobians and b_i
 gradients match the reference maths and central differences."""
 import gc
@@ -23,7 +23,7 @@ from surrogate import models
 from surrogate.export import export
 from surrogate.network import Fused, JacobianNet
 
-TIGHT = ("mpc.osqp.eps_abs=1e-7", "mpc.osqp.eps_rel=1e-7", "mpc.osqp.max_iter=20000")  # the reference's QPs near exact
+TIGHT = ("mpc.admm.osqp.eps_abs=1e-7", "mpc.admm.osqp.eps_rel=1e-7", "mpc.admm.osqp.max_iter=20000")  # the reference's QPs near exact
 U_TOL, Z_TOL = 5e-3, 1e-2  # rad or m/s^2, and m: a few times ADMM's tol_step (1e-3), where both converged
 
 
@@ -57,8 +57,8 @@ SOURCES = {"cv": lambda tmp: ExactLocal("cv", ConstantVelocity()), "analytic": l
 @pytest.mark.parametrize("name", list(SOURCES))
 def test_compiled_step_gives_the_reference_plan(name, states, tmp_path):
     src = SOURCES[name](tmp_path)
-    compiled = make("two_lane", ["gradients=analytic", "mpc.core=compiled"])[2]
-    reference = make("two_lane", ["gradients=analytic", "mpc.core=reference", *TIGHT])[2]
+    compiled = make("two_lane", ["gradients=analytic", "mpc.admm.core=compiled"])[2]
+    reference = make("two_lane", ["gradients=analytic", "mpc.admm.core=reference", *TIGHT])[2]
     both = 0
     for st in states:
         a, b = solver_step()(compiled, st.obs, src, st.warm), solver_step()(reference, st.obs, src, st.warm)
@@ -163,7 +163,7 @@ def test_compiled_closed_loop_drives_the_reference_episode_with_cv():
     tolerance changes: there the batch statistics compare.)"""
     episodes = []
     for core in ("compiled", "reference"):
-        cfg = planner_config("two_lane", ["gradients=cv", "method=admm", f"mpc.core={core}", *TIGHT])
+        cfg = planner_config("two_lane", ["gradients=cv", "method=admm", f"mpc.admm.core={core}", *TIGHT])
         scenario, src, s = setup(cfg)
         episodes.append(drive(cfg, scenario, src, s, "admm"))
     a, b = episodes
@@ -206,7 +206,7 @@ def test_one_call_admm_solve_equals_the_same_kernels_driven_from_python(name, st
     """The compiled predictors' one-call ADMM solve (jit_admm.admm_loop) and the Python-driven loop over the same kernels
     (taken when the safety has no compiled predictor) give the same iterates to rounding, step for step."""
     src = SOURCES[name](tmp_path)
-    s = make("two_lane", ["gradients=analytic", "mpc.core=compiled"])[2]
+    s = make("two_lane", ["gradients=analytic", "mpc.admm.core=compiled"])[2]
     one_call = [solver_step()(s, st.obs, src, st.warm) for st in states]
     monkeypatch.setattr(jit_zstep, "compiled_params", lambda source: None)  # the same compiled rollouts, called from Python
     driven = [solver_step()(s, st.obs, src, st.warm) for st in states]

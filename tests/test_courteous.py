@@ -31,11 +31,11 @@ def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_lea
     s, source, obs = beside
     Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
     b_min, Z = safeguard.plan_safe(s, obs, source, Delta, alpha)
-    assert -0.5 < b_min < -s.check_tol  # 2.1 m across: 0.5 m^2 is 12 cm
+    assert -0.5 < b_min < -s.safeguard.check_tol  # 2.1 m across: 0.5 m^2 is 12 cm
     fixed, b_fixed, _ = safeguard.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
                                   admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
     assert b_fixed == pytest.approx(safeguard.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
-    assert b_fixed >= s.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
+    assert b_fixed >= s.safeguard.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
     assert 0.0 < np.abs(fixed.Delta - Delta).max() < 0.15 and fixed.Delta[0] < steer  # steered a little less
     safe = np.full(s.T_p, -0.1)  # steering away: a plan that passes is left alone
     b_safe, Z = safeguard.plan_safe(s, obs, source, safe, alpha)
@@ -159,7 +159,7 @@ def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(be
     assert result.fallback == "" and ", from " in result.reason and result.c_min >= 0.0  # cv predicts no braking at all
     assert result.braking == 0.0
     paper = make("two_lane", ["gradients=cv"])[2]
-    assert paper.b_courtesy is None and paper.repair_iters == 0 and len(paper.strategy.candidates(paper, obs, None, None)) == 1
+    assert paper.b_courtesy is None and paper.safeguard.repair_iters == 0 and len(paper.strategy.candidates(paper, obs, None, None)) == 1
     assert "from" not in step.mpc_step(paper, obs, source, None, _sqp()).reason
 
 
@@ -227,13 +227,13 @@ def test_a_start_that_is_not_offset_acceleration_speed_is_one_line(starts):
 
 
 @pytest.mark.parametrize("override,message", [
-    ("mpc.repair_iters=-1", "mpc.repair_iters=-1: must be an integer >= 0"),
+    ("mpc.safeguard.repair_iters=-1", "mpc.safeguard.repair_iters=-1: must be an integer >= 0"),
     ("mpc.b_courtesy=-2", "mpc.b_courtesy=-2: must be a number > 0 or null"),
     ("mpc.b_courtesy=nan", "mpc.b_courtesy=nan: must be a number > 0 or null"),
-    ("mpc.repair_margin=-0.1", "mpc.repair_margin=-0.1: must be a number >= 0"),
+    ("mpc.safeguard.repair_margin=-0.1", "mpc.safeguard.repair_margin=-0.1: must be a number >= 0"),
     ("mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"),
-    ("mpc.check_relative=1", "mpc.check_relative=1: must be true or false"),
-    ("mpc.core=fast", "mpc.core=fast: must be one of compiled, reference"),
+    ("mpc.safeguard.check_relative=1", "mpc.safeguard.check_relative=1: must be true or false"),
+    ("mpc.admm.core=fast", "mpc.admm.core=fast: must be one of compiled, reference"),
     ("mpc.strategy.progress=-1", "mpc.strategy.progress=-1: must be a number >= 0"),
     ("mpc.strategy.keep_ahead.near=nan", "mpc.strategy.keep_ahead.near=nan: must be a number >= 0"),
 ])

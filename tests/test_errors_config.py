@@ -23,7 +23,7 @@ from planner.setup import check_window, planner_config
     ("planner", "mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"),
     ("planner", "paper.rho=abc", "paper.rho=abc: must be a number > 0"),
     ("planner", "paper.rho=-5", "paper.rho=-5: must be a number > 0"),
-    ("planner", "mpc.rho=0", "mpc.rho=0: must be a number > 0"),
+    ("planner", "mpc.admm.rho=0", "mpc.admm.rho=0: must be a number > 0"),
     ("planner", "T_obs=1", "T_obs=1: must be an integer in [2, 21]"),
     ("planner", "seed=-1", "seed=-1: must be an integer in [0, 4294967295]"),
     ("planner", "max_steps=0", "max_steps=0: must be an integer >= 1"),

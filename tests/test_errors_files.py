@@ -134,8 +134,8 @@ def test_a_checkpoint_of_the_other_model_is_one_line(tiny_dataset, tmp_path):
 ])
 def test_a_corrupt_certificate_is_one_line(text, why, tmp_path):
     (tmp_path / "certificate.json").write_text(text)
-    cfg = planner_config("two_lane", ["gradients=cv", "mpc.rho=certified", f"models_dir={tmp_path}"])
-    with pytest.raises(UserError, match=rf"^mpc.rho=certified: .*{why}"):
+    cfg = planner_config("two_lane", ["gradients=cv", "mpc.admm.rho=certified", f"models_dir={tmp_path}"])
+    with pytest.raises(UserError, match=rf"^mpc.admm.rho=certified: .*{why}"):
         setup.setup(cfg)
 
 

@@ -60,16 +60,16 @@ def test_braking_fallback_stops_the_ego_and_never_reverses(start):
     slow = obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 0.3]))  # 0.3 m/s: one step of the full brake would reverse
     result = safeguard.fallback(s, slow, source, None, "test")
     assert "braking in lane" in result.fallback
-    assert result.u[1] == pytest.approx(-0.3 / s.params.dt) and result.u[1] > s.brake
+    assert result.u[1] == pytest.approx(-0.3 / s.params.dt) and result.u[1] > s.safeguard.brake
     v = mpc.simulate(slow.z0, result.plan.Delta, result.plan.alpha, s.params)[3::4]
     np.testing.assert_allclose(v, 0.0, atol=1e-12)  # stopped after one step and held there
     fast = safeguard.fallback(s, obs._replace(z0=np.array([obs.z0[0], 0.0, 0.0, 5.0])), source, None, "test")
-    assert fast.u[1] == s.brake  # far from a stop: the configured deceleration
+    assert fast.u[1] == s.safeguard.brake  # far from a stop: the configured deceleration
 
 
 @pytest.mark.parametrize("relative", [False, True])
 def test_beside_a_car_a_plan_no_worse_than_braking_is_acceptable_only_with_check_relative(relative):
-    _, source, s = make("two_lane", ["gradients=cv", f"mpc.check_relative={relative}"])
+    _, source, s = make("two_lane", ["gradients=cv", f"mpc.safeguard.check_relative={relative}"])
     z0 = np.array([0.0, 1.0, 0.0, 5.0])  # straddling towards the target lane, 3 m from a car beside it at 5 m/s
     cars = np.array([[0.0, 4.0], [60.0, 4.0], [80.0, 4.0], [100.0, 4.0]])
     history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
@@ -79,10 +79,10 @@ def test_beside_a_car_a_plan_no_worse_than_braking_is_acceptable_only_with_check
     assert 3.0**2 - s.R**2 <= b_brake < -1.0  # braking back to the lane centre stays inside R for the checked steps too
     keep = safeguard.plan_safe(s, obs, source, Delta, np.zeros(s.T_p))[0]  # the same steering at 5 m/s, still beside it
     towards = safeguard.plan_safe(s, obs, source, np.full(s.T_p, 0.3), np.zeros(s.T_p))[0]  # steer at it
-    assert b_brake - s.check_tol <= keep < -s.check_tol and towards < b_brake - s.check_tol
+    assert b_brake - s.safeguard.check_tol <= keep < -s.safeguard.check_tol and towards < b_brake - s.safeguard.check_tol
     assert safeguard.acceptable(s, obs, source, keep) == relative
     assert not safeguard.acceptable(s, obs, source, towards)
-    assert safeguard.acceptable(s, obs, source, -s.check_tol)  # within the tolerance: always
+    assert safeguard.acceptable(s, obs, source, -s.safeguard.check_tol)  # within the tolerance: always
 
 
 def test_an_unexpected_error_in_a_step_is_a_fallback_with_its_reason(monkeypatch):
@@ -97,7 +97,7 @@ def test_an_unexpected_error_in_a_step_is_a_fallback_with_its_reason(monkeypatch
         raise ValueError("matmul: size 80 is different from 30")
 
     monkeypatch.setattr(source, "jacobian", broken)
-    monkeypatch.setattr(jit_rollout, "predicted", broken)  # the compiled core's own rollout of cv (mpc.core=compiled)
+    monkeypatch.setattr(jit_rollout, "predicted", broken)  # the compiled core's own rollout of cv (mpc.admm.core=compiled)
     monkeypatch.setattr(jit_admm, "admm_loop", broken)  # and its one-call ADMM solve
     for w in (None, warm):
         r = step(s, obs, source, w)
@@ -211,7 +211,7 @@ def test_a_record_dir_that_is_a_file_is_refused_before_driving(tmp_path, monkeyp
 
 
 @pytest.mark.parametrize("override,message", [
-    ("mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"), ("mpc.rho=-5", "mpc.rho=-5: must be"),
+    ("mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"), ("mpc.admm.rho=-5", "mpc.admm.rho=-5: must be"),
     ("mpc.admm.max_iters=0", "mpc.admm.max_iters=0: must be an integer >= 1"),
     ("scenario.params.dt=0", "scenario.params.dt=0: must be a number > 0"),
 ])

@@ -19,8 +19,8 @@ from surrogate import models
 from surrogate.export import export
 from surrogate.network import Fused, JacobianNet
 
-SLOW = ("zstep.settings.reuse_radius=0", "zstep.settings.max_iters=2", "mpc.osqp.eps_abs=1e-6", "mpc.osqp.eps_rel=1e-6",
-        "~mpc.osqp.adaptive_rho_interval")  # the reference: OSQP tight, two SQP steps each from a fresh linearisation
+SLOW = ("zstep.settings.reuse_radius=0", "zstep.settings.max_iters=2", "mpc.admm.osqp.eps_abs=1e-6", "mpc.admm.osqp.eps_rel=1e-6",
+        "~mpc.admm.osqp.adaptive_rho_interval")  # the reference: OSQP tight, two SQP steps each from a fresh linearisation
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_fast_step_gives_the_slow_plan(states, analytic):
 def test_box_qp_closed_form_equals_osqp_inside_and_on_the_box(states, analytic):
     _, src, s = analytic
     prob, solvers, _ = mpc.build(s, states[2].obs, src, states[2].warm, solver_step().keywords["zstep"])
-    P = prob.Phi_1.P + s.rho * prob.dyn.A.T @ prob.dyn.A
+    P = prob.Phi_1.P + s.admm.rho * prob.dyn.A.T @ prob.dyn.A
     assert np.array_equal(solvers.delta_qp.P, P)  # the Delta-update's QP: P_1 + rho A'A
     tight = {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000, "polishing": True}
     rng = np.random.default_rng(0)

@@ -85,7 +85,7 @@ def test_convex_instance_ipopt_and_osqp_agree(options):
 @pytest.mark.parametrize("predictor", ["analytic", "student"])
 def test_plan_meets_dynamics_and_safety_on_the_numpy_rollout(options, student, predictor):
     # the check of the nonlinear bicycle's rollout off: this tests the NLP's own solution, not the linearisation
-    scenario, analytic, s = make("two_lane", ["gradients=analytic", "mpc.check_tol=100"])
+    scenario, analytic, s = make("two_lane", ["gradients=analytic", "mpc.safeguard.check_tol=100"])
     source = analytic if predictor == "analytic" else ExactLocal(predictor, student)
     obs = observation(scenario)
     r = ipopt_step(s, obs, source, None, options)

@@ -127,14 +127,14 @@ def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
         return result
 
     monkeypatch.setattr(osqp.OSQP, "solve", failing)
-    result = step.mpc_step(dataclasses.replace(s, core="reference"), obs, cv, None, sqp)
+    result = step.mpc_step(dataclasses.replace(s, admm=dataclasses.replace(s.admm, core="reference")), obs, cv, None, sqp)
     assert "solver failure (OSQP primal infeasible)" in result.fallback and np.all(np.isfinite(result.u))
 
 
 def test_daqp_failure_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
-    crossed = dataclasses.replace(s, core="compiled")
+    crossed = dataclasses.replace(s, admm=dataclasses.replace(s.admm, core="compiled"))
     object.__setattr__(crossed, "delta_box", (0.1, -0.1))  # past Settings' check, lower above upper: DAQP refuses the box QP
     result = step.mpc_step(crossed, obs, cv, None, sqp)
     assert "solver failure (DAQP exit flag -" in result.fallback and np.all(np.isfinite(result.u))
@@ -203,8 +203,8 @@ def test_penalty_mode_drives_and_its_z_step_objective_carries_minus_lambda_s_sum
     prob, solvers, st = mpc.build(s, observe(z), src, None, build(cfg.zstep))
     zstep, rng = solvers.zstep, np.random.default_rng(2)
     mu, c_Z = rng.normal(size=4 * s.T_p), prob.dyn.C @ st.Z + rng.normal(0, 0.1, 4 * s.T_p)
-    lin_q = prob.Phi_3.q + prob.dyn.C.T @ (mu - s.rho * c_Z)
-    objective = lambda Z: (prob.Phi_3(Z) + mu @ (prob.dyn.C @ Z) + s.rho / 2 * np.sum((prob.dyn.C @ Z - c_Z) ** 2)
+    lin_q = prob.Phi_3.q + prob.dyn.C.T @ (mu - s.admm.rho * c_Z)
+    objective = lambda Z: (prob.Phi_3(Z) + mu @ (prob.dyn.C @ Z) + s.admm.rho / 2 * np.sum((prob.dyn.C @ Z - c_Z) ** 2)
                            - 2.0 * zstep.safety(Z).sum())
     Z1, Z2 = st.Z, st.Z + rng.normal(0, 0.3, st.Z.shape)
     merit = lambda Z: zstep.merit(Z, lin_q, zstep.safety(Z))

@@ -47,11 +47,11 @@ def test_both_zsteps_reach_the_same_local_solution(small, gradients, predictor):
     prob, solvers, (Z, mu, c_Z) = z_problem(s, obs, source, zstep())
     safety = solvers.zstep.safety
     sqp = zstep("zstep=sqp", "zstep.settings.max_iters=100", "zstep.settings.tol=1e-9")(
-        prob, safety, {**s.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
-    pg = zstep("zstep=pygranso", "zstep.settings.maxit=100", "zstep.settings.opt_tol=1e-7")(prob, safety, s.osqp)
+        prob, safety, {**s.admm.osqp, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000})
+    pg = zstep("zstep=pygranso", "zstep.settings.maxit=100", "zstep.settings.opt_tol=1e-7")(prob, safety, s.admm.osqp)
     Z_sqp, _, _ = sqp(Z, mu, c_Z)
     Z_pg, _, info = pg(Z, mu, c_Z)
-    f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.rho, mu, c_Z))
+    f = lambda x: sqp.model(x, linear_term(prob.Phi_3, prob.dyn.C, s.admm.rho, mu, c_Z))
     b = safety(Z_pg)
     assert b.min() > -1e-6 and np.sum(np.abs(b) < 1e-4) >= 1  # feasible, a safety constraint active: not a trivial QP
     assert f(Z_pg) < f(Z) - 1e-2  # both moved well away from the start
