@@ -7,7 +7,7 @@ result: it returns the fallback (planner.safeguard) with the reason.
 import numpy as np
 
 from core.jobs import UserError
-from planner import admm, jit_admm, safeguard
+from planner import admm, safeguard
 from planner.mpc import J_of, Observation, Settings, StepResult, build
 from planner.qp import SolverFailure
 
@@ -30,7 +30,7 @@ def solve(s: Settings, aim: Settings | None, obs: Observation, source, start: ad
     if aim is None:
         return offered(s, obs, source, start)
     prob, solvers, start = build(aim, obs, source, None, zstep, start)
-    st, out = (jit_admm if aim.core == "compiled" else admm).admm_solve(prob, solvers, start, *aim.admm)
+    st, out = aim.core.solve(prob, solvers, start, aim.admm.max_iters, aim.admm.tol_F, aim.admm.tol_step)
     if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
         return None, "non-finite iterate"
     values = safeguard.rollout(aim, obs, source, st.Delta, st.alpha)[1]
@@ -38,7 +38,7 @@ def solve(s: Settings, aim: Settings | None, obs: Observation, source, start: ad
     if not safeguard.acceptable(aim, obs, source, b_min):
         why = "infeasible linearisation" if out.zinfo.get("infeasible") else "unsafe plan"
         try:
-            fixed = safeguard.repaired(aim, obs, source, solvers.zstep.safety, st) if aim.repair_iters else None
+            fixed = safeguard.repaired(aim, obs, source, solvers.zstep.safety, st) if aim.safeguard.repair_iters else None
         except (SolverFailure, np.linalg.LinAlgError) as e:
             why, fixed = f"{why}, repair failed ({e})", None
         if fixed is None:
