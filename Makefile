@@ -60,14 +60,16 @@ batch: $(STAMP)
 	$(BIN)/planner scenario=random episodes=1000 seed=2000000 gradients=surrogate method=both
 
 # The clairvoyant ceiling on 200 held-out dense worlds (seeds from 2,000,000) and with every driver stubborn: the strategy
-# library, then its cross-entropy refinement (1.4x the library's processor time); about 30 minutes on 2 cores (estimated
-# from 13 s a world per core before the refinement). The same for other scenarios: `ceiling scenario=dense_deadline
-# episodes=200`; `backend=ray` for a cluster; recorded planner runs as further starts: 'starts=["<dir>/{seed}/steps_admm.csv"]'.
+# library (77% of the time), then its cross-entropy refinement; about 31 minutes on 2 cores (18.5 processor seconds a
+# world, measured on 12 tuning worlds on a busy machine; docs/studies.md). The same for other scenarios: `ceiling
+# scenario=dense_deadline episodes=200`; `backend=ray ray.address=auto` for a cluster; a planner batch's runs as further
+# starts: 'starts=["<its out_dir>/steps/admm_{seed}.csv"]' (planner/batch.py writes them; `make results` passes them all).
 ceiling: $(STAMP)
 	$(BIN)/ceiling scenario=dense episodes=200 seed=2000000
 
 # Every table and figure of the README's Results section from scratch (dataset, 3 trainings per model, held-out batches of
-# every gradient source, Table II scenarios, interaction benchmark, step-time bench): results/README-results.md and
+# every gradient source, Table II scenarios, the cooperation sweep, interaction benchmark, step-time bench, the ceiling
+# after the batches with their runs as starts): results/README-results.md and
 # results/*.png. About 2.5 hours on 2 cores, estimated (one training seed took 49-61 min); `make results-full` is the
 # preset for a bigger machine (or a Ray cluster: `results results_preset=full backend=ray ray.address=auto`).
 results: $(STAMP)

@@ -15,9 +15,10 @@ planner can (the hidden decisions, by trial), so no planner should ever beat it 
 
 Then the cross-entropy method (`refine`) over the ego's open-loop controls, from the library's refine.starts lowest
 scores (its best merge, its nearest misses): perturbed control sequences that turn in and follow once merged. With
-`starts` (recorded planner runs' per-step CSVs), each run is replayed open loop on a copy of its world and counted as it
-counted itself, a floor the ceiling never falls below, and refined from where it beats the search; the CSV's `search_*`
-columns are the search without them.
+`starts` (recorded planner runs' per-step CSVs; a planner batch writes them to <out_dir>/steps/<method>_<seed>.csv, and
+`results` passes every batch's to the ceiling on its scenario), each run is replayed open loop on a copy of its world
+and counted as it counted itself, a floor the ceiling never falls below, and refined from where it beats the search; the
+CSV's `search_*` columns are the search without them.
 
 With blind.episodes > 0 it also reports the best fixed strategy (`blind`): every searched strategy is driven on
 blind.episodes other worlds (seeds blind.seed on, never the batch's), and the one with the most courteous merges there

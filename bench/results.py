@@ -3,15 +3,19 @@
 Three parts: the job plan (bench/results_plan.py: the dataset; per training seed k the teacher, the student and the
 surrogate into <work_dir>/models/seed<k>; the interaction benchmark per training; the planner's held-out batches (dense
 traffic, the headline; random merges; the Table II scenarios) of every gradient source with both methods, once per
-training for the trained sources and once for cv and analytic; the clairvoyant ceiling on the same dense worlds, on the
-calibration scenarios and on Table II's worlds; the step-time bench; one closed-loop showcase run), run in order through
-the jobs' Python `run` functions (each logs its own MLflow runs); the tables (bench/results_tables.py, figures in
-bench/results_plots.py), computed from what those jobs returned and wrote; the text (bench/results_text.md), the prose
-around them. Together they write <out_dir>/README-results.md and <out_dir>/*.png, so no figure is typed by hand.
+training for the trained sources and once for cv and analytic; the cooperation sweep's dense batches at the other
+levels, first training alone; after them, the clairvoyant ceiling on the same dense worlds, on the calibration scenarios,
+on Table II's worlds and per cooperation level, every batch's runs on its scenario among its starts; the step-time bench;
+one closed-loop showcase run), run in order through the jobs' Python `run` functions (each logs its own MLflow runs);
+the tables (bench/results_tables.py, figures in bench/results_plots.py), computed from what those jobs returned and
+wrote; the text (bench/results_text.md), the prose around them. Together they write <out_dir>/README-results.md and
+<out_dir>/*.png, so no figure is typed by hand.
 
 The headline is the courteous-merge rate on dense traffic (data.outcomes: merged, no collision, nobody made to brake
 harder than b_safe), beside the ceiling's and the never-yield ceiling's. Per dense world, no planner episode may merge
-courteously where the ceiling did not, or sooner: the report counts the worlds where one did.
+courteously where the ceiling did not, or sooner: the report counts the worlds where one did (0 by construction: every
+run is replayed as one of the ceiling's starts), and how often the search alone, without the runs, reached the final
+value. Time to merge against the ceiling is a per-world ratio on the worlds both merged courteously on, bootstrapped.
 
 Intervals (95%): Wilson for rates, pooled over trainings and episodes; for means over episodes a percentile bootstrap
 that resamples trainings, then episodes within each, every table row on its own random stream (results_tables.stream);
@@ -42,8 +46,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from bench import breakdown
-from bench.results_plan import build_plan, with_options
-from bench.results_plots import accuracy_plot, bar_plot, braking_plot
+from bench.results_plan import build_plan, swept, with_options
+from bench.results_plots import accuracy_plot, bar_plot, braking_plot, cooperation_plot
 from bench.results_tables import (
     GRADIENT_ROWS,
     beaten,
@@ -58,9 +62,11 @@ from bench.results_tables import (
     over_trainings,
     paired_t_merge,
     pct,
+    rate,
     read_ceiling,
     read_episodes,
     stream,
+    sweep_table,
 )
 from core import validate
 from core.jobs import CONF_DIR, console, guarded, job_config, mlflow_run, writable
@@ -170,7 +176,10 @@ def dense(r: Report) -> dict:
         [s, *(f"{n} ({ok})" for n, ok in breakdown.breakdown(
             [e for (src, _), f in folders.items() if src == s for e in read_episodes(f, "admm")], worlds, sc.b_safe).values())]
         for s, m in r.dense_rows if m == "admm"])
+    reached = sum(w["search_courteous"] == w["ceiling_courteous"] and w["search_t_merge"] == w["ceiling_t_merge"]
+                  for w in worlds)
     return {"episodes": p.dense_episodes, "planner_seed": r.cfg.planner_seed, "blind_episodes": p.blind_episodes,
+            "starts": int(sum(w["starts"] for w in worlds)), "reached": reached,
             "blind_seed": job_config("ceiling", []).blind.seed, "b_safe": sc.b_safe,
             "table": "\n".join(dense_table(r.dense_rows)), "beat": len(beat), "worlds": len(worlds),
             "detail": f": {detail}" if detail else "", "breakdown": "\n".join(short), "paired": "\n".join(paired),
@@ -185,6 +194,29 @@ def calibration(r: Report) -> dict:
                      [[s, f"{c['worlds']:.0f}", pct(c, "ceiling_courteous"), pct(c, "never_yield_courteous"),
                        ci(c, "ceiling_t_merge"), fmt(c["held_b_imposed_max"])] for s, c in runs])
     return {"planner_seed": r.cfg.planner_seed, "table": "\n".join(table)}
+
+
+def cooperation(r: Report) -> list[dict]:
+    """The cooperation sweep on the first cooperation_episodes dense worlds: per level, the ceiling's two searches and
+    every dense row of the first training; its figure. None without levels."""
+    levels, n = list(r.p.cooperation), r.p.cooperation_episodes
+    if not levels:
+        return []
+    seeds = set(range(r.cfg.planner_seed, r.cfg.planner_seed + n))  # mixed: the headline's first n worlds
+    first = r.seeds[0]
+    rates = {}
+    for c in levels:
+        key, worlds = ("dense", read_ceiling(r.work, "dense")) if c == "mixed" else (swept(c), read_ceiling(r.work, "dense", c))
+        for k, name in list(SEARCHES.items())[:2]:
+            rates.setdefault(name, {})[c] = rate([w[f"{k}_courteous"] for w in worlds if int(w["seed"]) in seeds])
+        for (sc, row, training), folder in r.batches.items():
+            if sc == key and training in (None, first):
+                for m in methods(folder):
+                    hits = [e["courteous"] for e in read_episodes(folder, m) if int(e["seed"]) in seeds]
+                    rates.setdefault(f"{row} {m.upper()}", {})[c] = rate(hits)
+    cooperation_plot(rates, levels, r.dest / "cooperation.png")
+    return [{"worlds": n, "planner_seed": r.cfg.planner_seed, "training": first,
+             "levels": ", ".join(levels), "table": "\n".join(sweep_table(rates, levels))}]
 
 
 def predictors(r: Report) -> dict:
@@ -264,7 +296,8 @@ def showcase(r: Report) -> dict:
 
 
 # the report's sections in order: (name of its block in results_text.md, the function returning its values)
-SECTIONS = [("head", head), ("dense", dense), ("calibration", calibration), ("predictors", predictors),
+SECTIONS = [("head", head), ("dense", dense), ("calibration", calibration), ("cooperation", cooperation),
+            ("predictors", predictors),
             ("gradients", gradients), ("interaction", interaction), ("random", random_merges), ("table2", table2),
             ("accuracy", accuracy), ("bench", step_time), ("showcase", showcase)]
 

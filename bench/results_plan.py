@@ -8,12 +8,16 @@ from omegaconf import OmegaConf
 
 from bench import ceiling
 from bench.branches import heldout_seeds
+from core import validate
 from core.jobs import UserError, job_config
+from data.drivers import COOPERATION
 from planner.batch import progress
 from planner.gradients import available, reads_models
 
 log = logging.getLogger(__name__)
 TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
+SWEEP = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
+         "results_preset.cooperation_episodes": validate.Int(1)}  # the cooperation sweep's keys
 
 
 class Plan:
@@ -40,7 +44,7 @@ class Plan:
 def check_seeds(cfg, interaction_cfg) -> range:
     """The planner's held-out world seeds; a UserError if one was a dataset episode's or an interaction benchmark world's."""
     p = cfg.results_preset
-    n = max(p.episodes, p.table2_episodes, p.dense_episodes, p.calibration_episodes)
+    n = max(p.episodes, p.table2_episodes, p.dense_episodes, p.calibration_episodes, p.cooperation_episodes)
     seeds = heldout_seeds("planner_seed", cfg.planner_seed, n, interaction_cfg.dataset)
     lo = interaction_cfg.seed_offset
     hi = lo + interaction_cfg.states * interaction_cfg.branch.tries
@@ -91,13 +95,18 @@ def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, mo
 
 
 def build_plan(cfg, work: Path):
-    """The preset's jobs (Plan) and the planner batches' output folders {(scenario, source, seed k or None): folder}."""
+    """The preset's jobs (Plan) and the planner batches' output folders {(scenario, row, seed k or None): folder}; the
+    cooperation sweep's batches under scenario swept(level), of the first training alone."""
     from bench import interaction, step_time
     from data import cli as data_cli
     from planner import cli as planner_cli
     from planner.setup import planner_config
 
     p = cfg.results_preset
+    validate.check(cfg, SWEEP)
+    if "mixed" in p.cooperation and p.cooperation_episodes > p.dense_episodes:
+        raise UserError(f"results_preset.cooperation_episodes={p.cooperation_episodes}: the sweep's mixed level reads the "
+                        f"headline's first worlds, and it has {p.dense_episodes} (results_preset.dense_episodes)")
     data_dir, plan, batches = work / "data", Plan(), {}
     dataset_dir = data_dir / p.dataset
     plan.add("make-dataset", data_cli.run, job_config("make_dataset", [f"dataset={p.dataset}", f"out_dir={data_dir}",
@@ -114,23 +123,36 @@ def build_plan(cfg, work: Path):
         plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
     check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
     options = mpc_overrides(p.mpc_options)
-    runs = [("dense", s, p.dense_episodes, extra) for extra in options for s in p.sources] + \
-        [("random", s, p.episodes, []) for s in p.sources] + \
-        [(sc, s, p.table2_episodes, extra) for sc in p.scenarios for extra in options for s in p.table2_sources]
-    for scenario, source, episodes, extra in runs:
-        for k in p.training_seeds if source in TRAINED else [None]:
+    every, first = list(p.training_seeds), list(p.training_seeds[:1])
+    runs = [("dense", s, p.dense_episodes, extra, every) for extra in options for s in p.sources] + \
+        [("random", s, p.episodes, [], every) for s in p.sources] + \
+        [(sc, s, p.table2_episodes, extra, every) for sc in p.scenarios for extra in options for s in p.table2_sources] + \
+        [(swept(c), s, p.cooperation_episodes, extra, first) for c in fresh_levels(p) for extra in options for s in p.sources]
+    starts = {}  # {batches' scenario key: their per-step CSVs' templates}, the ceiling's recorded starts
+    for key, source, episodes, extra, trainings in runs:
+        scenario, *level = key.split(" cooperation=")
+        for k in trainings if source in TRAINED else [None]:
             row = label(source, extra)
-            folder = work / "planner" / scenario / row / (f"seed{k}" if k is not None else "untrained")
-            batches[scenario, row, k] = folder
-            plan.add(f"planner {scenario} {row}" + (f" seed {k}" if k is not None else ""), planner_cli.run, planner_config(scenario, [
-                f"gradients={source}", "method=both", *extra, f"episodes={episodes}", f"seed={cfg.planner_seed}",
-                f"models_dir={models(p.training_seeds[0] if k is None else k)}", f"out_dir={folder}", "plots=false",
-                f"n_jobs={cfg.n_jobs}", f"backend={cfg.backend}", f"ray.address={cfg.ray.address or 'null'}", *p.planner]))
+            folder = work / "planner" / key.replace(" cooperation=", "_") / row / (f"seed{k}" if k is not None else "untrained")
+            batches[key, row, k] = folder
+            overrides = [f"gradients={source}", "method=both", *extra, *(f"scenario.cooperation={c}" for c in level),
+                         f"episodes={episodes}", f"seed={cfg.planner_seed}",
+                         f"models_dir={models(p.training_seeds[0] if k is None else k)}", f"out_dir={folder}", "plots=false",
+                         f"n_jobs={cfg.n_jobs}", f"backend={cfg.backend}", f"ray.address={cfg.ray.address or 'null'}", *p.planner]
+            job = planner_config(scenario, overrides)
+            plan.add(f"planner {key} {row}" + (f" seed {k}" if k is not None else ""), planner_cli.run, job)
+            # each method's per-step CSVs (planner/batch.py), the methods as the planner reads them
+            starts.setdefault(key, []).extend(str(folder / "steps" / f"{m}_{{seed}}.csv") for m in job.method)
+    # after every batch: their runs are the ceiling's further starts, so no run can beat it on its world
     for scenario, worlds in ceiling_worlds(p).items():
-        plan.add(f"ceiling {scenario}", ceiling.run, job_config("ceiling", [
-            f"scenario={scenario}", f"seed={cfg.planner_seed}", f"episodes={worlds}", f"n_jobs={cfg.n_jobs}",
-            f"out_dir={work / 'ceiling'}", *([f"blind.episodes={p.blind_episodes}"] if scenario == "dense" else []),
-            *p.ceiling]))
+        extra = [f"blind.episodes={p.blind_episodes}"] if scenario == "dense" else []
+        plan.add(f"ceiling {scenario}", ceiling.run,
+                 ceiling_config(cfg, [f"scenario={scenario}", f"episodes={worlds}", f"out_dir={work / 'ceiling'}", *extra],
+                                starts.get(scenario, [])))
+    for c in fresh_levels(p):
+        plan.add(f"ceiling {swept(c)}", ceiling.run, ceiling_config(cfg, [
+            "scenario=dense", f"scenario.cooperation={c}", f"episodes={p.cooperation_episodes}",
+            f"out_dir={work / 'ceiling' / f'dense_{c}'}"], starts[swept(c)]))
     if p.bench is not None:
         plan.add("bench step time", step_time.run, job_config("bench", [
             f"models_dir={models(p.training_seeds[0])}", f"states.path={work / 'bench' / 'states.npz'}", *p.bench]))
@@ -139,6 +161,25 @@ def build_plan(cfg, work: Path):
         "method=both", f"seed={cfg.planner_seed}", f"models_dir={models(p.training_seeds[0])}",
         f"out_dir={work / 'showcase'}", *[o for o in p.showcase if not o.startswith("scenario=")], *p.planner]))
     return plan, batches
+
+
+def ceiling_config(cfg, overrides: list, starts: list):
+    """A `ceiling` job on the planner's held-out worlds with `overrides` and the preset's, on the batches' backend, with
+    the recorded runs' per-step CSV templates `starts`."""
+    job = job_config("ceiling", [*overrides, f"seed={cfg.planner_seed}", f"n_jobs={cfg.n_jobs}", f"backend={cfg.backend}",
+                                 f"ray.address={cfg.ray.address or 'null'}", *cfg.results_preset.ceiling])
+    job.starts = starts  # set, not an override: the folders' names have spaces ("cv courteous")
+    return job
+
+
+def swept(level: str) -> str:
+    """The batches' and ceiling's key of a cooperation level of the sweep on dense worlds: "dense cooperation=willing"."""
+    return f"dense cooperation={level}"
+
+
+def fresh_levels(p) -> list[str]:
+    """The sweep's levels that run batches of their own: mixed, the dense scenario's own drivers, is the headline's."""
+    return [c for c in p.cooperation if c != "mixed"]
 
 
 def label(source: str, extra: list) -> str:

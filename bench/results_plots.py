@@ -80,3 +80,31 @@ def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
                      "react_corr_jac": inter.get(source, {}).get("react_corr_jac", (np.nan,))[0],
                      "n_episodes": r["episodes"], "n_runs": r["trainings"]})
     compare.plot(pd.DataFrame(rows), path)
+
+
+def cooperation_plot(rates: dict, levels, path: Path):
+    """Courteous-merge rate (%) against cooperation level, a line per row ({name: {level: rate()}}), Wilson 95%
+    intervals as error bars; the ceilings dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9.5, 4.5))
+    x = np.arange(len(levels))
+    colors = plt.cm.tab20(np.linspace(0, 1, max(len(rates), 2)))  # a row each: more rows than the default cycle's 10
+    for i, (name, v) in enumerate(rates.items()):
+        y = np.array([v[c]["courteous"] for c in levels]) * 100
+        err = np.nan_to_num(np.abs(np.vstack([y - [100 * v[c]["courteous_lo"] for c in levels],
+                                              [100 * v[c]["courteous_hi"] for c in levels] - y])))
+        shift = (i - (len(rates) - 1) / 2) * 0.02  # side by side: intervals at one level stay readable
+        ax.errorbar(x + shift, y, yerr=err, capsize=3, marker="o", ms=4, label=name,
+                    ls="--" if "ceiling" in name else "-", color="k" if name == "ceiling" else colors[i])
+    ax.set_xticks(x, levels)
+    ax.set(xlabel="cooperation (scenario.cooperation)", ylabel="courteous merges (%)", ylim=(-3, 103),
+           title="dense traffic: courteous merges against cooperation, 95% CI")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

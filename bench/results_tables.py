@@ -38,9 +38,19 @@ def read_episodes(folder: Path, method: str) -> list[dict]:
                 if r["crash"] == "0"]
 
 
-def read_ceiling(work: Path, scenario: str) -> list[dict]:
-    """The ceiling's per-world rows of `scenario` (bench/ceiling.py's CSV) as {column: float}, its policy names left out."""
-    return breakdown.read(work / "ceiling" / f"ceiling_{scenario}.csv")
+def read_ceiling(work: Path, scenario: str, level: str | None = None) -> list[dict]:
+    """The ceiling's per-world rows of `scenario` (bench/ceiling.py's CSV) as {column: float}, its policy names left out;
+    with a cooperation `level`, those of the sweep's dense run at that level."""
+    folder = work / "ceiling" if level is None else work / "ceiling" / f"dense_{level}"
+    return breakdown.read(folder / f"ceiling_{scenario}.csv")
+
+
+def rate(hits) -> dict:
+    """A rate's {courteous, courteous_lo, courteous_hi} from 0/1 values (Wilson 95%); NaN for none."""
+    hits = np.asarray(hits, float)
+    lo, hi = stats.wilson(float(hits.sum()), len(hits))
+    return {"courteous": float(hits.mean()) if len(hits) else float("nan"), "courteous_lo": lo, "courteous_hi": hi,
+            "n": len(hits)}
 
 
 def ceiling_row(r: dict, worlds: list[dict], search: str, resamples: int, rng) -> dict:
@@ -137,3 +147,10 @@ def dense_table(rows: dict) -> list[str]:
     return markdown(header, [[s, m.upper() or "-", size(r), pct(r, "courteous"), pct(r, "merged"), ci(r, "t_merge"),
                               ci(r, "b_imposed_max", ".2f"), pct(r, "collision"), ci(r, "fallbacks", ".2f")]
                              for (s, m), r in rows.items()])
+
+
+def sweep_table(rates: dict, levels) -> list[str]:
+    """The Markdown table of the cooperation sweep: a line per row ({name: {level: rate()}}), its courteous rate per
+    level."""
+    return markdown(["row", *(f"{c}: courteous % [95% CI]" for c in levels)],
+                    [[name, *(pct(v[c], "courteous") for c in levels)] for name, v in rates.items()])

@@ -9,7 +9,10 @@ episode depends only on its seed, so both give the same per-episode results.
 An episode that raises is recorded as a crash with its message in the CSV; the batch goes on, and then fails with the
 count (exit 2, MLflow run FAILED) unless `tolerate_crashes=true`; a batch in which every episode crashed always fails.
 Rates and means are over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size.
-The headline is the courteous-merge rate (data.outcomes). Intervals (core.stats): Wilson for `courteous`, `merged` and `collision`
+Beside each method's per-episode CSV, steps/<method>_<seed>.csv holds each finished episode's per-step CSV
+(planner/report.py write_csv; written here, not by the workers, so a Ray cluster needs no shared disk): the recorded
+controls that `ceiling starts=[...]` replays. The headline is the courteous-merge rate (data.outcomes). Intervals
+(core.stats): Wilson for `courteous`, `merged` and `collision`
 (`courteous_lo`, `courteous_hi`, ...), Student t for the means of t_merge, C_max, fallbacks and b_imposed_max.
 """
 import contextlib
@@ -31,6 +34,7 @@ from tqdm.auto import tqdm  # noqa: E402
 from core import stats  # noqa: E402
 from core.jobs import Stopped, UserError, mlflow_run, quiet, stop_signal  # noqa: E402
 from planner import report, setup  # noqa: E402
+from planner.closed_loop import Episode  # noqa: E402
 
 FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
            "step_ms": "MPC step wall time (ms, every step)", "admm_iters_mean": "ADMM iterations (episode mean)",
@@ -50,7 +54,8 @@ def worker_setup(cfg):
 
 
 def episode(cfg_dict: dict, method: str, seed: int):
-    """(CSV row, per-step wall times ms, iterations of the non-fallback steps) of one episode; never raises."""
+    """(CSV row, per-step wall times ms, iterations of the non-fallback steps, per-step records) of one episode; never
+    raises."""
     try:
         cfg = OmegaConf.create(cfg_dict)
         scenario, source, s = worker_setup(cfg)
@@ -60,11 +65,11 @@ def episode(cfg_dict: dict, method: str, seed: int):
             np.isfinite([m[k] for k in ("t_merge", "C_max", "d_min_m")]).all()
         row = {"seed": seed, **m, "crash": 0, "nan": int(not finite), "error": "",
                "notes": "; ".join(ep.notes)}
-        return row, [r["step_ms"] for r in ep.rows], [r["iterations"] for r in ep.rows if not r["fallback"]]
+        return row, [r["step_ms"] for r in ep.rows], [r["iterations"] for r in ep.rows if not r["fallback"]], ep.rows
     except Exception as e:  # one bad episode must not kill a thousand: count it and carry its message
         if stop_signal() is not None:  # the error came from a stop signal caught inside a library: stop, not a crash
             raise Stopped(stop_signal()) from e
-        return {"seed": seed, "crash": 1, "nan": 0, "error": f"{type(e).__name__}: {e}"[:500]}, [], []
+        return {"seed": seed, "crash": 1, "nan": 0, "error": f"{type(e).__name__}: {e}"[:500]}, [], [], []
 
 
 def aggregate(rows, step_ms, iters) -> dict:
@@ -166,8 +171,9 @@ def drive_all(cfg, method: str) -> list:
 
 def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
     """One method's batch inside its MLflow run, opened first (a stopped batch ends KILLED): drive_all, aggregate, write
-    the CSV and histograms to out_dir and log them; returns its metrics. Crashed episodes then fail the run with their
-    count (UserError), unless cfg.tolerate_crashes; a batch whose every episode crashed always fails."""
+    the CSV, the per-step CSVs (steps/) and histograms to out_dir and log the first and last; returns its metrics.
+    Crashed episodes then fail the run with their count (UserError), unless cfg.tolerate_crashes; a batch whose every
+    episode crashed always fails."""
     import mlflow
 
     tag = f"{method}_{source.name}_{scenario.name}"
@@ -180,6 +186,10 @@ def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
         title = f"{scenario.name}, {method}, gradients={source.name}: {len(rows)} episodes"
         csv_path = out_dir / f"episodes_{tag}.csv"
         write_csv(rows, csv_path)
+        (out_dir / "steps").mkdir(exist_ok=True)
+        for row, *_, steps in out:
+            if steps:
+                report.write_csv(Episode(rows=steps), out_dir / "steps" / f"{method}_{row['seed']}.csv")
         plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
         mlflow.log_metrics(r)
         mlflow.log_artifact(str(csv_path))

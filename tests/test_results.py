@@ -118,7 +118,7 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
     mine = planner[planner["params.out_dir"].str.startswith(str(work)) & (planner["params.scenario"] == "dense")]
     recording = mine["params.out_dir"].str.startswith(str(work / "runs" / "iterates-"))  # the surrogate's states, not a row
     assert recording.sum() == 1 and set(mine[recording]["params.seed"]) == {"5000000"}
-    mine = mine[~recording]
+    mine = mine[~recording & (mine["params.scenario.cooperation"] == "mixed")]  # not the cooperation sweep's
     best = {w["seed"]: w["ceiling_t_merge"] if w["ceiling_courteous"] else np.inf for w in dense}
     beat = set()
     for source, mpc, method in [(s, "paper", m) for s in ("cv", "student") for m in ("admm", "nnmpc")] + \
@@ -145,7 +145,22 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
         assert (numbers(row(5))[:1] == pytest.approx([np.mean(t)], abs=0.051)) if t else row(5) == "-"
         assert numbers(row(6))[0] == pytest.approx(np.mean([w[f"{search}_b_imposed"] for w in dense]), abs=0.0051)
         assert row(4) == row(7) == row(8) == "-"  # the search neither reports plain merges, collisions nor fallbacks
-    assert f"planner beat the ceiling on {len(beat)} worlds of 2" in md
+    # every planner run was one of the ceiling's starts: none beats it, and the report says how often the search alone sufficed
+    steps = sorted((work / "planner" / "dense").glob("*/*/steps/*.csv"))
+    assert beat == set() and "planner beat the ceiling on 0 worlds of 2" in md
+    assert [w["starts"] for w in dense] == [sum(f.stem.endswith(f"_{w['seed']:.0f}") for f in steps) for w in dense] == [6, 6]
+    reached = sum(w["search_courteous"] == w["ceiling_courteous"] and w["search_t_merge"] == w["ceiling_t_merge"] for w in dense)
+    assert f"already reached the final value on {reached} of the 2 worlds" in md
+    for f in steps:  # a run's per-step CSV: a row per step it drove
+        method, seed = f.stem.split("_")
+        (e,) = [e for e in episodes_csv(str(f.parents[1]), method) if e["seed"] == float(seed)]
+        assert len(list(csv.DictReader(open(f)))) == e["steps"]
+    paired = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in md.split("Time to merge against")[1]
+              .split("Where each ADMM row")[0].splitlines() if line.startswith("| ") and "---" not in line}
+    for row, method in (("cv", "admm"), ("cv courteous", "admm")):
+        eps = [e for f in (work / "planner" / "dense" / row).glob("*") for e in episodes_csv(str(f), method)]
+        pairs = sum(bool(e["courteous"]) and best[e["seed"]] < np.inf for e in eps)
+        assert paired[f"{row} {method.upper()}"] == str(pairs)
     for sc, rows in worlds.items():
         row = lambda c: cell(md, "Ceiling calibration", sc, str(len(rows)), c)
         assert numbers(row(2)) == pytest.approx(rate_cell([float(w["ceiling_courteous"]) for w in rows]), abs=0.051)
@@ -214,3 +229,25 @@ def test_readme_headline_rows_are_the_generated_reports_rows():
     generated = section((root / "results" / "README-results.md").read_text(), "Dense traffic (headline)").splitlines()
     assert len(rows) >= 5 and rows[0].startswith("| gradients | method |")
     assert [r for r in rows if r not in generated] == []  # every figure copied, none typed
+
+
+def test_tiny_cooperation_sweep_shows_each_levels_ceiling_and_rows_on_the_same_worlds(tiny):
+    out, work, md, _ = tiny
+    assert (out / "cooperation.png").read_bytes()[:4] == b"\x89PNG" and "cooperation.png" in md
+    header = [h.strip() for h in next(line for line in section(md, "Cooperation sweep").splitlines()
+                                      if line.startswith("| row |")).split("|")[1:-1]]
+    assert header[1:] == [f"{c}: courteous % [95% CI]" for c in ("stubborn", "mixed", "willing")]
+    for i, level in enumerate(("stubborn", "mixed", "willing"), start=1):
+        folder = work / "ceiling" / ("" if level == "mixed" else f"dense_{level}")
+        worlds = list(csv.DictReader(open(folder / "ceiling_dense.csv")))[:1]  # tiny: 1 world per level, the first
+        assert worlds[0]["seed"] == "2000000"
+        for search, name in (("ceiling", "ceiling"), ("never_yield", "never-yield ceiling")):
+            shown = next(line for line in section(md, "Cooperation sweep").splitlines() if line.startswith(f"| {name} |"))
+            assert numbers(shown.split("|")[1:-1][i]) == pytest.approx(rate_cell([float(w[f"{search}_courteous"])
+                                                                                  for w in worlds]), abs=0.051)
+        batch = work / "planner" / ("dense" if level == "mixed" else f"dense_{level}") / "student courteous" / "seed0"
+        eps = [e for e in episodes_csv(str(batch), "admm") if e["seed"] == 2000000]
+        shown = next(line for line in section(md, "Cooperation sweep").splitlines() if line.startswith("| student courteous ADMM |"))
+        assert numbers(shown.split("|")[1:-1][i]) == pytest.approx(rate_cell([e["courteous"] for e in eps]), abs=0.051)
+    stubborn = list(csv.DictReader(open(work / "ceiling" / "dense_stubborn" / "ceiling_dense.csv")))
+    assert [w["ceiling_courteous"] for w in stubborn] == [w["never_yield_courteous"] for w in stubborn]  # nobody yields

@@ -1,0 +1,49 @@
+"""`results`' job plan (bench/results_plan.py), built without running it: every ceiling after its scenario's planner
+batches with their per-step CSVs as starts, and the cooperation sweep's jobs."""
+import pytest
+
+from bench.results_plan import build_plan
+from conftest import compose_cfg
+from core.jobs import UserError
+
+
+def tiny_plan(tmp_path, *overrides):
+    """(labels in order, {label: job config}, batches) of the tiny preset's plan."""
+    cfg = compose_cfg("results", ["results_preset=tiny", f"out_dir={tmp_path}", f"work_dir={tmp_path}", *overrides])
+    plan, batches = build_plan(cfg, tmp_path)
+    return [label for label, _, _ in plan.steps], {label: args[0] for label, _, args in plan.steps}, batches
+
+
+def test_every_ceiling_runs_after_its_batches_and_replays_each_of_their_runs(tmp_path):
+    labels, jobs, batches = tiny_plan(tmp_path)
+    keys = {key for key, _, _ in batches}
+    assert keys == {"dense", "random", "two_lane", "dense cooperation=stubborn", "dense cooperation=willing"}
+    for key in keys:
+        folders = {str(f): row for (k, row, _), f in batches.items() if k == key}
+        ran = [i for i, label in enumerate(labels) if label.startswith("planner ") and jobs[label].out_dir in folders]
+        assert len(ran) == len(folders)
+        assert labels.index(f"ceiling {key}") > max(ran)
+        # the paper's step runs both methods, an mpc option's row ADMM alone: each writes steps/<method>_<seed>.csv
+        expected = {f"{f}/steps/{m}_{{seed}}.csv" for f, row in folders.items()
+                    for m in (["admm"] if " " in row else ["admm", "nnmpc"])}
+        assert set(jobs[f"ceiling {key}"].starts) == expected and len(jobs[f"ceiling {key}"].starts) == len(expected)
+    assert list(jobs["ceiling three_lane"].starts) == list(jobs["ceiling dense_deadline"].starts) == []  # no batches there
+
+
+def test_the_cooperation_sweep_runs_each_fresh_level_on_the_first_training_and_reuses_the_headline_for_mixed(tmp_path):
+    labels, jobs, batches = tiny_plan(tmp_path, "results_preset.training_seeds=[0,1]")
+    for level in ("stubborn", "willing"):
+        ceiling = jobs[f"ceiling dense cooperation={level}"]
+        assert (ceiling.scenario.name, ceiling.scenario.cooperation, ceiling.episodes) == ("dense", level, 1)
+        assert ceiling.out_dir.endswith(f"ceiling/dense_{level}")
+        runs = {(row, k): jobs[label] for label in labels if label.startswith(f"planner dense cooperation={level} ")
+                for (key, row, k), f in batches.items() if key == f"dense cooperation={level}" and str(f) == jobs[label].out_dir}
+        assert set(runs) == {("cv", None), ("student", 0), ("cv courteous", None), ("student courteous", 0)}
+        assert {(j.scenario.cooperation, j.episodes, j.seed) for j in runs.values()} == {(level, 1, 2000000)}
+    assert not any("mixed" in label for label in labels)
+    assert {k for (key, _, k) in batches if key == "dense"} == {None, 0, 1}  # the headline: every training
+    with pytest.raises(UserError, match=r"results_preset.cooperation_episodes=3: the sweep's mixed level reads the "
+                                        r"headline's first worlds, and it has 2"):
+        tiny_plan(tmp_path, "results_preset.cooperation_episodes=3")
+    with pytest.raises(UserError, match=r"results_preset.cooperation=\['polite'\]: must be"):
+        tiny_plan(tmp_path, "results_preset.cooperation=[polite]")
