@@ -1,6 +1,8 @@
 """The merge world: bicycles on straight parallel lanes, the ego (index 0) and reactive IDM/MOBIL drivers; the first
 implementation of data.protocol.World."""
+import bisect
 import copy
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,10 +44,12 @@ def backfill(z, steps, dt):
 
 
 def steer_to(z, y_target, p: bicycle.BicycleParams, k_y=0.6, k_psi=2.0, delta_max=0.5):
-    """Lane-keeping steering (rad): heading set-point from the lateral error, then a heading loop."""
-    _, y, psi, v = z
-    psi_d = np.arctan(k_y * (y_target - y) / max(v, 1.0))
-    return float(min(max((p.l_f + p.l_r) * k_psi * (psi_d - psi) / max(v, 1.0), -delta_max), delta_max))
+    """Lane-keeping steering (rad) of states z (..., 4) towards lateral positions y_target (...) (m): heading set-point
+    from the lateral error, then a heading loop; a world steers all its cars in one call."""
+    z = np.asarray(z, dtype=float)
+    v = np.maximum(z[..., 3], 1.0)
+    psi_d = np.arctan(k_y * (y_target - z[..., 1]) / v)
+    return np.clip((p.l_f + p.l_r) * k_psi * (psi_d - z[..., 2]) / v, -delta_max, delta_max)
 
 
 def corners(z, road: Road):
@@ -71,10 +75,12 @@ def overlap(z1, z2, road: Road) -> bool:
 
 
 def collided(z, road: Road) -> list:
-    """Index pairs (i, j), i < j, whose bodies overlap in states z (M, 4); far pairs are skipped before the exact test."""
-    d = np.hypot(*(z[:, None, :2] - z[None, :, :2]).transpose(2, 0, 1))
-    near = zip(*np.nonzero(np.triu(d <= np.hypot(road.car_length, road.car_width), 1)))
-    return [(int(i), int(j)) for i, j in near if overlap(z[i], z[j], road)]
+    """Index pairs (i, j), i < j, whose bodies overlap in states z (M, 4); pairs further apart in x or in y than a body's
+    diagonal are skipped before the exact test (overlap), which rejects every pair further apart than that."""
+    reach = np.hypot(road.car_length, road.car_width)
+    x, y = z[:, 0], z[:, 1]
+    i, j = np.nonzero((np.abs(x[:, None] - x) <= reach) & (np.abs(y[:, None] - y) <= reach))
+    return [(a, b) for a, b in zip(i.tolist(), j.tolist()) if a < b and overlap(z[a], z[b], road)]
 
 
 def remembered_xy(seen, steps, dt) -> np.ndarray:
@@ -86,6 +92,18 @@ def remembered_xy(seen, steps, dt) -> np.ndarray:
     if len(known) >= steps:
         return known
     return np.concatenate([backfill(seen[0], steps - len(known) + 1, dt)[:-1], known])
+
+
+class Scene:
+    """The states one step reads, fixed while its drivers decide: x and v (m, m/s) as Python floats and each car's
+    nearest lane, computed once per step; per-car look-ups index these lists, as numpy scalars cost microseconds each.
+    `order` caches each lane's occupants sorted by x (World.occupants) until a target lane changes."""
+
+    def __init__(self, z, road: Road):
+        self.x, self.y, self.v = z[:, 0].tolist(), z[:, 1].tolist(), z[:, 3].tolist()
+        self.lanes = road.lane_of(z[:, 1])
+        self.lane = self.lanes.tolist()
+        self.order = {}
 
 
 @dataclass
@@ -106,7 +124,7 @@ class World:
     yielding: np.ndarray = None  # (SLOTS,) whether each driver brakes for the ego at this step (response above YIELD_LABEL)
     seen: list = None  # past states z, newest last, from which drivers perceive the ego with their reaction delay
     collisions: list = field(default_factory=list)  # (time s, i, j) of every body overlap seen
-    _lanes: np.ndarray = None  # lane_of(z[:, 1]) while a step reads the fixed current z: computed once, not per car
+    _scene: Scene = None  # the current z as a step's drivers read it, built once per step rather than per car
 
     def __post_init__(self):
         m = len(self.z)
@@ -126,44 +144,66 @@ class World:
         """Driver of vehicle i; the ego gets a default IDM driver, used only to judge braking imposed on it."""
         return self.drivers[i - 1] if i > 0 else IDMDriver()
 
+    def scene(self) -> Scene:
+        """The current z as drivers read it: the step's own while it runs, else a fresh one (z may have been set)."""
+        return self._scene if self._scene is not None else Scene(self.z, self.road)
+
     def in_lane(self, lane):
         """Mask (SLOTS,) of vehicles occupying `lane`: nearest to its centre, or an other car changing into it."""
-        mask = (self._lanes if self._lanes is not None else self.road.lane_of(self.z[:, 1])) == lane
+        mask = self.scene().lanes == lane
         mask[1:] |= self.target_lane[1:] == lane
         return mask
 
+    def occupants(self, lane) -> list:
+        """(x (m), index) of every vehicle in `lane` (in_lane), sorted by x then index, which leader and follower bisect;
+        a car at x NaN is left out, as no comparison of x counts it ahead or behind. Kept while the step's z and
+        target lanes stand."""
+        s = self.scene()
+        if lane not in s.order:
+            s.order[lane] = sorted((s.x[i], i) for i in np.flatnonzero(self.in_lane(lane)).tolist() if not math.isnan(s.x[i]))
+        return s.order[lane]
+
     def leader(self, j, lane, exclude=()):
-        """Index of the nearest vehicle ahead of vehicle j in `lane` (the ego included), or None."""
-        occ = self.in_lane(lane)
-        ahead = [i for i in range(len(self.z)) if i != j and i not in exclude and occ[i] and self.z[i, 0] > self.z[j, 0]]
-        return min(ahead, key=lambda i: self.z[i, 0]) if ahead else None
+        """Index of the nearest vehicle ahead of vehicle j in `lane` (the ego included; of cars level in x the lowest
+        index), or None."""
+        cars, x = self.occupants(lane), self.scene().x[j]
+        k = bisect.bisect_right(cars, (x, math.inf))  # the first car with x above vehicle j's: the nearest ahead
+        while k < len(cars) and cars[k][1] in exclude:
+            k += 1
+        return cars[k][1] if k < len(cars) else None
 
     def follower(self, j, lane, exclude=()):
-        """Index of the nearest vehicle behind vehicle j in `lane` (the ego included), or None."""
-        occ = self.in_lane(lane)
-        behind = [i for i in range(len(self.z)) if i != j and i not in exclude and occ[i] and self.z[i, 0] <= self.z[j, 0]]
-        return max(behind, key=lambda i: self.z[i, 0]) if behind else None
+        """Index of the nearest vehicle behind vehicle j in `lane` (the ego included; level in x counts as behind, and
+        of cars level in x the lowest index), or None."""
+        cars, x = self.occupants(lane), self.scene().x[j]
+        best = x_best = None
+        for x_i, i in reversed(cars[:bisect.bisect_right(cars, (x, math.inf))]):  # x up to vehicle j's, nearest first
+            if best is not None and x_i < x_best:  # past the nearest x: only lower indices level with it could follow
+                break
+            if i != j and i not in exclude:
+                best, x_best = i, x_i
+        return best
 
     def idm_to(self, j, leader):
         """IDM acceleration (m/s^2) of vehicle j's driver behind vehicle `leader` (None: free road)."""
-        d = self.driver(j)
+        d, s = self.driver(j), self.scene()
         if leader is None:
-            return d.acceleration(self.z[j, 3])
-        gap = self.z[leader, 0] - self.z[j, 0] - self.road.car_length
-        return d.acceleration(self.z[j, 3], gap, self.z[leader, 3])
+            return d.acceleration(s.v[j])
+        return d.acceleration(s.v[j], s.x[leader] - s.x[j] - self.road.car_length, s.v[leader])
 
-    def perceived(self, j):
-        """The state z (SLOTS, 4) driver j acts on: reaction_delay ago (the oldest recorded one early in an episode)."""
+    def perceived(self, j) -> int:
+        """Index in `seen` of the state driver j acts on: reaction_delay ago (the oldest recorded one early on)."""
         back = int(round(self.drivers[j - 1].reaction_delay / self.params.dt))
-        return self.seen[max(0, len(self.seen) - 1 - back)]
+        return max(0, len(self.seen) - 1 - back)
 
-    def encroachment(self, j, z):
-        """How far the ego encroaches on driver j's lane in state z, 0..1: depth past d_react (full after d_ramp)
-        times how far it is ahead (full after x_ramp); 0 once it is in the lane (then it is a leader) or out of view."""
+    def encroachment(self, j, z, ego_lane):
+        """How far the ego, in lane `ego_lane` in state z, encroaches on driver j's lane, 0..1: depth past d_react (full
+        after d_ramp) times how far it is ahead (full after x_ramp); 0 once it is in the lane (then it is a leader) or
+        out of view."""
         d = self.drivers[j - 1]
         own = self.target_lane[j]
         dx = z[0, 0] - z[j, 0]
-        if self.road.lane_of(z[0, 1]) == own or not dx < d.view:
+        if ego_lane == own or not dx < d.view:
             return 0.0
         depth = (d.d_react - abs(z[0, 1] - self.road.centre(own))) / d.d_ramp
         return float(unit(depth) * unit(dx / d.x_ramp))
@@ -171,21 +211,26 @@ class World:
     def respond(self):
         """Advance every yielding driver's response one step towards its perceived encroachment (first-order lag,
         time constant t_ramp); stubborn drivers keep 0."""
-        for j in range(1, len(self.z)):
-            d = self.drivers[j - 1]
-            w = self.encroachment(j, self.perceived(j)) if self.will_yield[j] else 0.0
-            self.response[j] += min(1.0, self.params.dt / d.t_ramp) * (w - self.response[j])
+        w = np.zeros(len(self.z) - 1)
+        yielders = np.flatnonzero(self.will_yield[1:]).tolist()
+        if yielders:
+            ego_lanes = self.road.lane_of([z[0, 1] for z in self.seen]).tolist()  # once for all, not once per driver
+            for j in (i + 1 for i in yielders):
+                k = self.perceived(j)
+                w[j - 1] = self.encroachment(j, self.seen[k], ego_lanes[k])
+        rate = np.array([min(1.0, self.params.dt / d.t_ramp) for d in self.drivers])
+        self.response[1:] += rate * (w - self.response[1:])
         self.yielding = self.response > YIELD_LABEL
 
     def acceleration(self, j):
         """Driver j's acceleration (m/s^2): IDM to its leader, blended by its response towards IDM behind the ego
         (projected into its lane, braking capped at b_yield) while the ego is ahead of it."""
-        d = self.drivers[j - 1]
-        lanes = {int(self.road.lane_of(self.z[j, 1])), int(self.target_lane[j])}  # both while changing lane
+        d, s = self.drivers[j - 1], self.scene()
+        lanes = {s.lane[j], int(self.target_lane[j])}  # both while changing lane
         a = min(self.idm_to(j, self.leader(j, lane)) for lane in lanes)
         if self.response[j] == 0.0:
             return a
-        ahead = unit((self.z[0, 0] - self.z[j, 0]) / d.x_ramp)  # nothing to yield to once the ego is behind
+        ahead = unit((s.x[0] - s.x[j]) / d.x_ramp)  # nothing to yield to once the ego is behind
         return a + self.response[j] * ahead * (min(a, max(self.idm_to(j, 0), -d.b_yield)) - a)
 
     def mobil(self, j, a_now):
@@ -198,13 +243,14 @@ class World:
         lane, new = self.target_lane[j], self.target_lane[j] + 1
         if new >= self.road.lanes:
             return lane
+        x = self.scene().x
         new_leader, new_f, old_f = self.leader(j, new), self.follower(j, new), self.follower(j, lane)
-        if new_leader is not None and self.z[new_leader, 0] - self.z[j, 0] < 2 * self.road.car_length:
+        if new_leader is not None and x[new_leader] - x[j] < 2 * self.road.car_length:
             return lane
         nf_gain = of_gain = 0.0
         if new_f is not None:
             nf_after = self.idm_to(new_f, j)
-            if nf_after < -d.b_safe or self.z[j, 0] - self.z[new_f, 0] < 2 * self.road.car_length:
+            if nf_after < -d.b_safe or x[j] - x[new_f] < 2 * self.road.car_length:
                 return lane
             nf_gain = (nf_after - self.idm_to(new_f, self.leader(new_f, new))) if new_f > 0 else 0.0
         if old_f is not None and old_f > 0:
@@ -217,8 +263,14 @@ class World:
         return self.z.copy()
 
     def copy(self) -> "World":
-        """An independent copy: same drivers, same hidden decisions, same past (branches, the oracle, the ceiling)."""
-        return copy.deepcopy(self)
+        """An independent copy: same drivers, same hidden decisions, same past (branches, the oracle, the ceiling).
+        Only what a step or a caller writes is copied: road, params and drivers are frozen, and a remembered state is
+        never written (a step appends a new one); a deepcopy took a millisecond, the oracle makes one per plan."""
+        w = copy.copy(self)
+        w.z, w.target_lane, w.response, w.yielding, w.will_yield = (
+            a.copy() for a in (self.z, self.target_lane, self.response, self.yielding, self.will_yield))
+        w.drivers, w.seen, w.collisions = list(self.drivers), list(self.seen), list(self.collisions)
+        return w
 
     def decisions(self):
         """The hidden, latched decisions to yield (M,) (the ego's always False): for benchmarks, never for a planner."""
@@ -243,18 +295,26 @@ class World:
         u[0] = ego_u
         decide = self.lane_change and int(round(self.t / p.dt)) % max(1, int(round(self.mobil_period / p.dt))) == 0
         self.respond()
-        self._lanes = self.road.lane_of(self.z[:, 1])
-        for j in range(1, len(self.z)):
-            a = max(self.acceleration(j), -self.b_max)
-            if decide and abs(self.z[j, 1] - self.road.centre(self.target_lane[j])) < 0.3:
-                self.target_lane[j] = self.mobil(j, a)
-            u[j] = [steer_to(self.z[j], self.road.centre(self.target_lane[j]), p), a]
-        self._lanes = None
+        s = self._scene = Scene(self.z, self.road)
+        try:
+            for j in range(1, len(self.z)):  # in index order: a lane change counts for the cars after it
+                u[j, 1] = max(self.acceleration(j), -self.b_max)
+                if decide and abs(s.y[j] - self.road.centre(self.target_lane[j])) < 0.3:
+                    self.change_lane(j, self.mobil(j, u[j, 1]))
+        finally:
+            self._scene = None
+        u[1:, 0] = steer_to(self.z[1:], self.road.centre(self.target_lane[1:]), p)
         z_next = bicycle.step(self.z, u, p)
         z_next[1:, 3] = np.maximum(z_next[1:, 3], 0.0)  # human drivers stop, they do not reverse
         if ego_z is not None:
             z_next[0] = ego_z
         return self._advance(z_next)
+
+    def change_lane(self, j, lane):
+        """Set driver j's target lane; a change moves it into `lane`'s occupants for the rest of the step."""
+        if lane != self.target_lane[j]:
+            self.target_lane[j] = lane
+            self.scene().order.clear()
 
     def step_to(self, ego_z):
         """Advance dt with the others driving and the ego put at the planned state ego_z (4,); returns collided pairs."""
