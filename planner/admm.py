@@ -14,7 +14,8 @@ from planner.qp import BoxQP
 
 
 class ADMMState(NamedTuple):
-    """Iterate (Delta (T_p,), alpha (T_p,), Z (4T_p,), mu (4T_p,)) and the Z-step's own carried state."""
+    """Iterate (Delta (T_p,), alpha (T_p,), Z (4T_p,), mu (4T_p,)) and the Z-step's own carried state (sqp's
+    planner.zstep.ZState: trust radius and b_i's linearisation; None: start afresh)."""
 
     Delta: np.ndarray
     alpha: np.ndarray
@@ -120,9 +121,20 @@ class Solve(NamedTuple):
     zinfo: dict
 
 
+CONTINUE, CONVERGED, RESTART = 0, 1, 2  # stopped()'s verdicts
+
+
+def stopped(F_norm, change, lin_offset, tol_F, tol_step):
+    """Algorithm 1's stopping test after a sweep, one for both cores: CONVERGED when ||F|| <= tol_F, the iterate change
+    (inf-norm) <= tol_step and the Z-step's b_i linearised within tol_step (m) of its result; RESTART the Z-step (zstate
+    None: a fresh linearisation) when only that last test fails; else CONTINUE."""
+    if F_norm <= tol_F and change <= tol_step:
+        return CONVERGED if lin_offset <= tol_step else RESTART
+    return CONTINUE
+
+
 def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
-    """Iterate admm_step until ||F|| <= tol_F, the iterate change (inf-norm) <= tol_step and the Z-step's b_i linearised
-    within tol_step (m) of its result, or max_iters.
+    """Iterate admm_step until stopped() says CONVERGED, or max_iters.
 
     A Z-step that reuses a linearisation reports how far it lies (info `lin_offset`); converged on a stale one, the Z-step
     is restarted (zstate None), which makes it linearise afresh, so a converged plan is a fixed point of the exact model."""
@@ -133,9 +145,8 @@ def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F,
         change = float(max(np.max(np.abs(new.Delta - st.Delta)), np.max(np.abs(new.alpha - st.alpha)),
                            np.max(np.abs(new.Z - st.Z))))
         F_norm = float(np.linalg.norm(prob.dyn.F(new.Delta, new.alpha, new.Z)))
-        if F_norm <= tol_F and change <= tol_step:
-            if info.get("lin_offset", 0.0) <= tol_step:
-                return new, Solve(k, "converged", F_norm, change, info)
-            new = new._replace(zstate=None)
-        st = new
+        verdict = stopped(F_norm, change, info.get("lin_offset", 0.0), tol_F, tol_step)
+        if verdict == CONVERGED:
+            return new, Solve(k, "converged", F_norm, change, info)
+        st = new._replace(zstate=None) if verdict == RESTART else new
     return st, Solve(k, "max_iters", F_norm, change, info)

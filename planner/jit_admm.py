@@ -1,18 +1,65 @@
-"""Algorithm 1 for the compiled core (mpc.core=compiled): planner.admm's sweep Delta -> alpha -> Z -> mu with its
+"""Algorithm 1 for the compiled core (mpc.admm.core=compiled): planner.admm's sweep Delta -> alpha -> Z -> mu with its
 arithmetic in numba kernels; DAQP solves a box QP whose unconstrained minimiser leaves the box, and the Z-step
 (planner.jit_zstep) its QPs. With a predictor the core runs itself (cv, the student) the whole solve is one compiled
 call (admm_loop); with the others, whose Jacobians come from Python, the same kernels are driven from Python.
 planner.admm stays the tested reference. The one-call solve's thin layers (box_update, jit_zstep's z_update and
 safety_rows, jit_rollout's predicted) are inlined by numba (inline="always"): compiled as separate functions, each
 layer re-optimised all the code linked beneath it, and a fresh clone compiled for 46 s instead of 30."""
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
-from planner import daqp_qp
-from planner.admm import ADMMState, Problem, Solve, Solvers
+from planner import admm, daqp_qp
+from planner.admm import CONVERGED, RESTART, ADMMState, Problem, Solve, Solvers
 from planner.daqp_qp import NO_ROWS, DaqpBox, optimal
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_zstep import CompiledSQPZStep, z_update
+from planner.jit_zstep import CompiledSQPZStep, Lin, ZInfo, z_update
+from planner.zstep import ZState
+
+
+class Box(NamedTuple):
+    """A Delta or alpha update as admm_loop reads it: its QP's P and P^-1, Phi's q, the box lo, hi and a DAQP handle."""
+
+    P: np.ndarray
+    P_inv: np.ndarray
+    q: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    qp: object
+
+
+class Iterate(NamedTuple):
+    """admm_loop's iterate: Delta, alpha, Z, mu and the Z-step's carried state (radius m, fresh: start afresh, lin)."""
+
+    Delta: np.ndarray
+    alpha: np.ndarray
+    Z: np.ndarray
+    mu: np.ndarray
+    radius: float
+    fresh: bool
+    lin: Lin
+
+
+class Stop(NamedTuple):
+    """When admm_loop stops (planner.admm.Settings'): iteration cap, ||F|| (state units), iterate change (inf-norm)."""
+
+    max_iters: int
+    tol_F: float
+    tol_step: float
+
+
+class Loop(NamedTuple):
+    """How admm_loop ended: the last iterate, iterations, converged, ||F||, iterate change, the last Z-step's ZInfo and
+    DAQP's last exit flag."""
+
+    it: Iterate
+    iters: int
+    converged: bool
+    F_norm: float
+    change: float
+    info: ZInfo
+    flag: int
 
 
 @njit(cache=True)
@@ -75,6 +122,9 @@ def mu_update(A, B, C, D, rho, Delta, alpha, Z, mu, old_Delta, old_alpha, old_Z)
     return mu + rho * residual, np.sqrt(np.sum(residual * residual)), change
 
 
+stopped = njit(cache=True, inline="always")(admm.stopped)  # planner.admm's test, compiled: one test, both cores
+
+
 @njit(cache=True, inline="always")
 def box_update(qp, cold, P, lo, hi, update):
     """The box QP's minimiser from an update kernel's (minimiser, inside, linear term): the closed form, or DAQP's
@@ -87,73 +137,64 @@ def box_update(qp, cold, P, lo, hi, update):
 
 
 @njit(cache=True)
-def admm_loop(dyn, d_box, a_box, zp, sqp, pred, rows_of, n_b, z_qp, lin, Delta, alpha, Z, mu, radius, fresh, max_iters,
-              tol_F, tol_step):
+def admm_loop(dyn, d_box, a_box, zk, it, stop):
     """admm_solve's sweeps as one kernel for a compiled predictor (planner.jit_zstep.z_update): dyn = (A, B, C, D);
-    d_box, a_box = (P, P^-1, Phi's q, box lo, hi, DAQP handle) of the Delta and alpha updates; the Z-step's zp, sqp, pred, rows_of,
-    n_b, handle z_qp and linearisation lin as z_update's; (radius, fresh) its carried state. Returns (Delta, alpha, Z,
-    mu, radius, fresh, lin, iterations, converged, ||F||, iterate change, the last Z-step's info, DAQP's exit flag)."""
+    d_box, a_box: the Delta and alpha updates' Box; zk: the Z-step's ZKernel; it: the Iterate to start from; stop: Stop.
+    Returns a Loop."""
     A, B, C, D = dyn
-    P_1, P_1_inv, q_1, lo_1, hi_1, d_qp = d_box
-    P_2, P_2_inv, q_2, lo_2, hi_2, a_qp = a_box
+    Delta, alpha, Z, mu, radius, fresh, lin = it
+    rho = zk.data.rho
     d_cold, a_cold, z_cold = True, True, True
     F_norm = step = np.inf
-    info = (0, 0.0, np.inf, np.inf, np.inf)
+    info = ZInfo(0, 0.0, np.inf, np.inf, np.inf)
     k, flag = 0, 1
-    for k in range(1, max_iters + 1):
-        new_Delta, flag, called = box_update(d_qp, d_cold, P_1, lo_1, hi_1, delta_update(A, B, C, D, P_1_inv, q_1, zp[3], lo_1, hi_1,
-                                                                             Delta, alpha, Z, mu))
+    for k in range(1, stop.max_iters + 1):
+        new_Delta, flag, called = box_update(d_box.qp, d_cold, d_box.P, d_box.lo, d_box.hi, delta_update(
+            A, B, C, D, d_box.P_inv, d_box.q, rho, d_box.lo, d_box.hi, Delta, alpha, Z, mu))
         d_cold = d_cold and not called
         if flag < 1:
             break
-        new_alpha, flag, called = box_update(a_qp, a_cold, P_2, lo_2, hi_2, alpha_update(A, B, C, D, P_2_inv, q_2, zp[3], lo_2, hi_2,
-                                                                             new_Delta, alpha, Z, mu))
+        new_alpha, flag, called = box_update(a_box.qp, a_cold, a_box.P, a_box.lo, a_box.hi, alpha_update(
+            A, B, C, D, a_box.P_inv, a_box.q, rho, a_box.lo, a_box.hi, new_Delta, alpha, Z, mu))
         a_cold = a_cold and not called
         if flag < 1:
             break
-        new_Z, radius, lin, info, flag = z_update(zp, sqp, pred, rows_of, n_b, z_qp, z_cold, lin, Z, mu,
-                                                      z_residual(A, B, C, D, new_Delta, new_alpha, Z), radius, fresh)
+        new_Z, radius, lin, info, flag = z_update(zk, z_cold, lin, Z, mu, z_residual(A, B, C, D, new_Delta, new_alpha, Z),
+                                                  radius, fresh)
         z_cold, fresh = False, False
         if flag < 1:
             break
-        mu, F_norm, step = mu_update(A, B, C, D, zp[3], new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
+        mu, F_norm, step = mu_update(A, B, C, D, rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
         Delta, alpha, Z = new_Delta, new_alpha, new_Z
-        if F_norm <= tol_F and step <= tol_step:
-            if info[4] <= tol_step:
-                return Delta, alpha, Z, mu, radius, fresh, lin, k, True, F_norm, step, info, flag
-            fresh = True
-    return Delta, alpha, Z, mu, radius, fresh, lin, k, False, F_norm, step, info, flag
+        verdict = stopped(F_norm, step, info.lin_offset, stop.tol_F, stop.tol_step)
+        if verdict == CONVERGED:
+            return Loop(Iterate(Delta, alpha, Z, mu, radius, fresh, lin), k, True, F_norm, step, info, flag)
+        fresh = verdict == RESTART
+    return Loop(Iterate(Delta, alpha, Z, mu, radius, fresh, lin), k, False, F_norm, step, info, flag)
 
 
 def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
     """admm_solve in one call of admm_loop (the Z-step a CompiledSQPZStep over a compiled predictor)."""
     zs, c = solvers.zstep, np.ascontiguousarray
-    safety, s = zs.safety, zs.s
-    dyn = tuple(c(M) for M in prob.dyn)
-    box = lambda qp, q, role: (c(qp.P), c(qp.P_inv), c(q), c(qp.lo, float), c(qp.hi, float),
-                               daqp_qp.shared(role, len(qp.lo)))
-    zp = (zs.H, c(zs.Phi_3.q), zs.C, float(prob.rho), c(zs.lo), c(zs.hi), zs.xy)
-    sqp = (s.max_iters, s.trust_radius, s.min_radius, s.max_radius, s.tol, zs.hard, s.lambda_s, s.slack_penalty,
-           s.reuse_radius)
-    dt, b_c = safety.courtesy or (1.0, 0.0)  # unread without courtesy rows
-    pred = (*safety.params, safety.history, safety.x_obs)
-    rows_of = (float(safety.R), float(safety.stretch), float(safety.p), float(dt), float(b_c), bool(safety.courtesy))
-    T_p, M = len(st.Delta), safety.history.shape[1]
-    lin = (np.zeros((T_p, 2)), np.zeros((T_p, M, 2)), np.zeros((T_p, M, 2, T_p, 2)), False)
-    z_qp = daqp_qp.shared("z", len(zs.H), safety.rows, zs.hard, float(s.slack_penalty))  # hard form: elastic (soft) rows
-    (Delta, alpha, Z, mu, radius, fresh, lin, k, converged, F_norm, step, info, flag) = admm_loop(
-        dyn, box(solvers.delta_qp, prob.Phi_1.q, "delta"), box(solvers.alpha_qp, prob.Phi_2.q, "alpha"), zp, sqp, pred,
-        rows_of, safety.n_b, z_qp, lin, c(st.Delta, float), c(st.alpha, float), c(st.Z, float), c(st.mu, float),
-        float(s.trust_radius if st.zstate is None else st.zstate), st.zstate is None, int(max_iters), float(tol_F),
-        float(tol_step))
-    optimal(Z, flag)
-    if lin[3]:
-        safety._lin = lin[:3]
-    its, slack, b_min, c_min, lin_offset = info
-    zinfo = {"sqp_iters": its, "slack": slack, "infeasible": slack > s.slack_tol, "b_min": b_min, "c_min": c_min,
-             "lin_offset": lin_offset}
-    state = ADMMState(Delta, alpha, Z, mu, None if fresh else radius)
-    return state, Solve(k, "converged" if converged else "max_iters", F_norm, step, zinfo)
+    box = lambda qp, q, role: Box(c(qp.P), c(qp.P_inv), c(q), c(qp.lo, float), c(qp.hi, float),
+                                  daqp_qp.shared(role, len(qp.lo)))
+    T_p, M = len(st.Delta), zs.safety.history.shape[1]
+    if st.zstate is None:
+        radius, lin = zs.sqp.trust_radius, Lin(np.zeros((T_p, 2)), np.zeros((T_p, M, 2)), np.zeros((T_p, M, 2, T_p, 2)), False)
+    else:
+        radius, lin = st.zstate.radius, Lin(*st.zstate.lin, True)
+    z_qp = daqp_qp.shared("z", len(zs.data.H), zs.safety.rows, zs.sqp.hard, zs.sqp.slack_penalty)  # hard form: elastic (soft) rows
+    start = Iterate(c(st.Delta, float), c(st.alpha, float), c(st.Z, float), c(st.mu, float), float(radius),
+                    st.zstate is None, lin)
+    out = admm_loop(tuple(c(M) for M in prob.dyn), box(solvers.delta_qp, prob.Phi_1.q, "delta"),
+                    box(solvers.alpha_qp, prob.Phi_2.q, "alpha"), zs.kernel(z_qp), start,
+                    Stop(int(max_iters), float(tol_F), float(tol_step)))
+    it, info = out.it, out.info
+    optimal(it.Z, out.flag)
+    zinfo = {**info._asdict(), "infeasible": info.slack > zs.s.slack_tol}
+    zstate = None if it.fresh else ZState(it.radius, it.lin[:3])
+    return (ADMMState(it.Delta, it.alpha, it.Z, it.mu, zstate),
+            Solve(out.iters, "converged" if out.converged else "max_iters", out.F_norm, out.change, zinfo))
 
 
 def box_solve(qp: DaqpBox, update):
@@ -181,8 +222,8 @@ def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F,
         new_Z, zstate, info = solvers.zstep(Z, mu, z_residual(*dyn, new_Delta, new_alpha, Z), zstate)
         mu, F_norm, step = mu_update(*dyn, prob.rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
         Delta, alpha, Z = new_Delta, new_alpha, new_Z
-        if F_norm <= tol_F and step <= tol_step:
-            if info.get("lin_offset", 0.0) <= tol_step:
-                return ADMMState(Delta, alpha, Z, mu, zstate), Solve(k, "converged", F_norm, step, info)
-            zstate = None
+        verdict = admm.stopped(F_norm, step, info.get("lin_offset", 0.0), tol_F, tol_step)
+        if verdict == CONVERGED:
+            return ADMMState(Delta, alpha, Z, mu, zstate), Solve(k, "converged", F_norm, step, info)
+        zstate = None if verdict == RESTART else zstate
     return ADMMState(Delta, alpha, Z, mu, zstate), Solve(k, "max_iters", F_norm, step, info)

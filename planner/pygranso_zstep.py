@@ -106,6 +106,8 @@ def source_b(safety):
     """b_i(Z) (N*T_p,) in m^2 as a torch function whose backward is the gradient source's d b_i / d Z."""
     import torch
 
+    last = [None]  # the last linearisation: PyGranso asks for d b_i / d Z once per constraint at the same Z
+
     class SourceB(torch.autograd.Function):
         @staticmethod
         def forward(ctx, Z):
@@ -115,7 +117,7 @@ def source_b(safety):
         @staticmethod
         def backward(ctx, grad):
             (Z,) = ctx.saved_tensors
-            _, Jb = safety.linearize(Z.numpy())  # cached per Z: PyGranso asks once per constraint
+            _, Jb, last[0] = safety.linearize(Z.numpy(), last[0])
             return grad @ torch.from_numpy(Jb)
 
     return SourceB.apply

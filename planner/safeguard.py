@@ -50,7 +50,7 @@ def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):
     Delta, alpha = st.Delta, st.alpha
     for _ in range(s.safeguard.repair_iters):
         Z = simulate(obs.z0, Delta, alpha, s.params)
-        b, Jb = safety.linearize(Z)
+        b, Jb, _ = safety.linearize(Z)
         Delta, alpha = repair.repair_step(obs.z0, Delta, alpha, Z, b[:safety.n_b], Jb[:safety.n_b], s.params, W,
                                           s.delta_box, s.a_box, s.safeguard.check_steps, s.safeguard.repair_margin, s.admm.osqp)
         Z, values = rollout(s, obs, source, Delta, alpha)

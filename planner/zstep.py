@@ -15,6 +15,40 @@ from scipy import sparse
 from planner.qp import QP
 
 
+class TrustRegion(NamedTuple):
+    """The trust-region test of an SQP step on the merit function (Nocedal and Wright's Algorithm 4.1), one set of
+    constants for both cores: a step is accepted when its actual decrease is at least `accept` times the predicted one
+    (or the prediction is below `flat`: nothing left to gain); after one with at least `good` times it that reached
+    `full` times the radius, the radius grows `grow` times; a rejected step shrinks it `shrink` times."""
+
+    accept: float
+    good: float
+    full: float
+    grow: float
+    shrink: float
+    flat: float
+
+
+TRUST_REGION = TrustRegion(accept=0.1, good=0.75, full=0.99, grow=2.0, shrink=0.5, flat=1e-12)
+
+
+def verdict(actual, predicted, step, radius, tr: TrustRegion, min_radius, max_radius):
+    """The trust-region test of a step of size `step` (inf-norm, m) at radius `radius` (m): (accepted, next radius)."""
+    if actual >= tr.accept * predicted or predicted <= tr.flat:
+        if actual >= tr.good * predicted and step >= tr.full * radius:
+            radius = min(tr.grow * radius, max_radius)
+        return True, radius
+    return False, max(tr.shrink * radius, min_radius)
+
+
+class ZState(NamedTuple):
+    """What the SQP Z-step carries from one ADMM iteration to the next (ADMMState.zstate; None: start afresh, the
+    radius reset and b_i linearised anew): its trust radius (m) and b_i's linearisation (planner.safety.Safety's)."""
+
+    radius: float
+    lin: tuple
+
+
 class SQPSettings(NamedTuple):
     """Trust region on the ego's x, y (m), its bounds and growth, iteration cap, step tolerance (m), safety form; the
     values live in conf/zstep/sqp.yaml."""
@@ -29,6 +63,7 @@ class SQPSettings(NamedTuple):
     slack_penalty: float  # L1 price of violating a linearised b_i >= 0 (per m^2)
     slack_tol: float  # slack (m^2) above which the linearisation counts as infeasible
     reuse_radius: float  # m: b_i's linearisation is reused while the ego's planned xy stay this close to where it was taken
+    trust_region: TrustRegion = TRUST_REGION  # the step test's constants, not a tuning knob
 
 
 @lru_cache(maxsize=8)
@@ -84,14 +119,14 @@ class SQPZStep:
             return self.model(Z, lin_q) + self.s.slack_penalty * np.sum(np.maximum(0.0, -b))
         return self.model(Z, lin_q) - self.s.lambda_s * np.sum(b)
 
-    def __call__(self, Z, mu, c_Z, zstate=None):
-        """Z_{k+1} from Z_k; zstate is the trust radius (m), None: start afresh (b_i linearised anew at Z_k); info: SQP
-        iterations, max slack, infeasible, min b_i, lin_offset (m)."""
-        radius = self.s.trust_radius if zstate is None else zstate
+    def __call__(self, Z, mu, c_Z, zstate: ZState | None = None):
+        """Z_{k+1} from Z_k and the Z-step's next ZState; info: SQP iterations, max slack, infeasible, min b_i,
+        lin_offset (m)."""
+        radius, lin = (self.s.trust_radius, None) if zstate is None else zstate
         reuse = 0.0 if zstate is None else self.s.reuse_radius
         lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
         Z = np.clip(Z, self.lo, self.hi)
-        b, Jb = self.safety.linearize(Z, reuse)
+        b, Jb, lin = self.safety.linearize(Z, lin, reuse)
         b_Z, slack, its = b, 0.0, 0
         for its in range(1, self.s.max_iters + 1):
             q = np.concatenate([lin_q, np.full(self.n_b, self.s.slack_penalty * self.k_s)])
@@ -106,21 +141,19 @@ class SQPZStep:
             x = self.qp.solve(q=q, l=l, u=u, Gx=data)
             Z_new, s = np.clip(x[:self.n_Z], self.lo, self.hi), x[self.n_Z:] * self.k_s  # OSQP's box is met to its tolerance
             slack = float(max(s.max(initial=0.0), 0.0))
-            b_new = self.safety.trial(Z_new, self.s.reuse_radius)
+            b_new, lin = self.safety.trial(Z_new, lin, self.s.reuse_radius)
             here = self.merit(Z, lin_q, b)
             predicted = here - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
             actual = here - self.merit(Z_new, lin_q, b_new)
             step = float(np.max(np.abs(Z_new - Z)))
-            if actual >= 0.1 * predicted or predicted <= 1e-12:
-                if actual >= 0.75 * predicted and step >= 0.99 * radius:
-                    radius = min(2.0 * radius, self.s.max_radius)
+            accepted, radius = verdict(actual, predicted, step, radius, self.s.trust_region, self.s.min_radius,
+                                       self.s.max_radius)
+            if accepted:
                 Z, b_Z = Z_new, b_new
                 if step < self.s.tol:
                     break
-                b, Jb = self.safety.linearize(Z, self.s.reuse_radius)
-            else:
-                radius = max(0.5 * radius, self.s.min_radius)
-        return Z, radius, {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
-                           "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
-                           "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)), "lin_offset": self.safety.offset(Z)}
-
+                b, Jb, lin = self.safety.linearize(Z, lin, self.s.reuse_radius)
+        return Z, ZState(radius, lin), {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
+                                        "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
+                                        "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)),
+                                        "lin_offset": self.safety.offset(Z, lin)}

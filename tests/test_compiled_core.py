@@ -14,7 +14,7 @@ from bench.states import collect, solver_step
 from core.rollout import SLOTS, T_OBS, accelerations, b_i, b_i_jacobian, courtesy_jacobian, ego_xy, rollout_jacobian
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner import daqp_qp, jit_rollout, jit_zstep
+from planner import daqp_qp, jit_rollout, jit_zstep, mpc
 from planner.daqp_qp import SoftQP
 from planner.gradients import ExactLocal, Surrogate
 from planner.qp import QP, SolverFailure
@@ -68,6 +68,34 @@ def test_compiled_step_gives_the_reference_plan(name, states, tmp_path):
             assert np.abs(a.u - b.u).max() <= U_TOL and np.abs(a.plan.Z - b.plan.Z).max() <= Z_TOL
             assert abs(a.J - b.J) <= 1e-3 * max(abs(b.J), 1.0)
     assert both >= 3
+
+
+@pytest.mark.parametrize("name", ["cv", "analytic"])
+def test_the_cores_take_the_same_iteration_before_they_converge(name, states, tmp_path):
+    """The first four ADMM iterations, long before convergence, each from the same iterate (the reference's) in both
+    cores (cv: the one-call solve; analytic: its kernels driven from Python): the same trust radius always, and the same
+    iterate wherever the linearised rows can be met (no slack paid), so the cores share the trust-region test and its
+    constants, not only the fixed points they converge to. (Where slack is paid the two soft-row QPs part: DAQP's soft
+    rows and OSQP's elastic slack price a violation differently.)"""
+    src = SOURCES[name](tmp_path)
+    cores = (make("two_lane", ["gradients=analytic", "mpc.admm.core=compiled"])[2],
+             make("two_lane", ["gradients=analytic", "mpc.admm.core=reference", *TIGHT])[2])
+    zstep = solver_step().keywords["zstep"]
+    radii, compared = set(), 0
+    for st in states:
+        built = [mpc.build(s, st.obs, src, st.warm, zstep) for s in cores]
+        it = built[1][2]
+        for _ in range(4):
+            (a, out_a), (b, out_b) = (s.core.solve(prob, solvers, it, 1, 1e-12, 1e-12)
+                                      for s, (prob, solvers, _) in zip(cores, built))
+            assert out_a.reason == out_b.reason == "max_iters" and a.zstate.radius == b.zstate.radius
+            radii.add(b.zstate.radius)
+            if max(out_a.zinfo["slack"], out_b.zinfo["slack"]) < 1e-6:
+                compared += 1
+                assert max(np.abs(x - y).max() for x, y in zip(a[:3], b[:3])) < 1e-4  # Delta, alpha, Z
+                assert np.abs(a.mu - b.mu).max() < 1e-3 * built[1][0].rho  # mu moves by rho F: rho times a few Z errors
+            it = b
+    assert compared >= 24 and len(radii) > 1  # most iterations compared; the radius grown or cut on the way
 
 
 @pytest.mark.parametrize("name", ["cv", "student"])

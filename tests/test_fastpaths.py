@@ -72,22 +72,21 @@ def test_reused_linearisation_is_exact_for_cv_and_second_order_for_a_reacting_pr
     d = np.zeros_like(Z)
     d[0::4], d[1::4] = 0.3, -0.2  # every step's ego x, y moved
     for source in (cv, src):
-        reuse = Safety(source, st.obs.history, s.R, s.T_p)
-        reuse.linearize(Z)
+        safety = Safety(source, st.obs.history, s.R, s.T_p)
+        lin = safety.linearize(Z)[2]
         errs = []
         for h in (1.0, 0.5):
-            b, Jb = reuse.linearize(Z + h * d, reuse_radius=0.5)
-            assert reuse.offset(Z + h * d) == pytest.approx(0.3 * h)  # reused, not taken afresh
-            b0, _ = Safety(source, st.obs.history, s.R, s.T_p).linearize(Z + h * d)
+            b, Jb, kept = safety.linearize(Z + h * d, lin, reuse_radius=0.5)
+            assert kept is lin and safety.offset(Z + h * d, lin) == pytest.approx(0.3 * h)  # reused, not taken afresh
+            b0, _, _ = safety.linearize(Z + h * d)
             errs.append(np.abs(b - b0).max())
         if source is cv:  # the others ignore the ego: the ego's own part of b_i is exact, so all of it is
             assert max(errs) < 1e-9
         else:
             assert errs[0] > 1e-6 and errs[1] < 0.35 * errs[0]  # halving the offset quarters the error
     fresh = Safety(src, st.obs.history, s.R, s.T_p)
-    fresh.linearize(Z)
-    fresh.linearize(Z + d, reuse_radius=0.2)  # beyond the radius: linearised anew
-    assert fresh.offset(Z + d) == 0.0
+    new = fresh.linearize(Z + d, fresh.linearize(Z)[2], reuse_radius=0.2)[2]  # beyond the radius: linearised anew
+    assert fresh.offset(Z + d, new) == 0.0
 
 
 def test_fused_surrogate_source_matches_the_torch_chain_rule(tmp_path, states):

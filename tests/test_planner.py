@@ -92,7 +92,7 @@ def test_safety_gradient_matches_central_differences(two_lane, gradients, predic
         src = source(gradients, *([f"predictor={predictor}"] if predictor != "auto" else []),
                      *(["gradients.h=1e-4"] if gradients == "fd" else []))
     Z = mpc.simulate(obs.z0, np.full(s.T_p, 0.1), np.full(s.T_p, 0.5), s.params)
-    b, Jb = Safety(src, obs.history, s.R, s.T_p).linearize(Z)
+    b, Jb, _ = Safety(src, obs.history, s.R, s.T_p).linearize(Z)
     values = Safety(CentralDifferences("fd", src.predictor, 1e-4), obs.history, s.R, s.T_p)
     h = 1e-2 if tol > 1e-3 else 1e-6  # the float32 student needs a larger step
     Jfd = np.stack([(values(Z + h * e) - values(Z - h * e)) / (2 * h) for e in np.eye(len(Z))], 1)
