@@ -19,14 +19,19 @@ from planner.zstep import ZState
 
 
 class Box(NamedTuple):
-    """A Delta or alpha update as admm_loop reads it: its QP's P and P^-1, Phi's q, the box lo, hi and a DAQP handle."""
+    """A Delta or alpha update's box QP as the kernels read it: its P and P^-1, Phi's q and the box lo, hi."""
 
     P: np.ndarray
     P_inv: np.ndarray
     q: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
-    qp: object
+
+
+def box(qp, q) -> Box:
+    """The Box of a planner.qp.BoxQP (or its DaqpBox) with Phi's q, contiguous float64."""
+    c = np.ascontiguousarray
+    return Box(c(qp.P), c(qp.P_inv), c(q), c(qp.lo, float), c(qp.hi, float))
 
 
 class Iterate(NamedTuple):
@@ -63,8 +68,9 @@ class Loop(NamedTuple):
 
 
 @njit(cache=True)
-def F(A, B, C, D, Delta, alpha, Z):
-    """Dynamics residual (4T_p,) in state units (m, m, rad, m/s)."""
+def F(dyn, Delta, alpha, Z):
+    """Dynamics residual (4T_p,) in state units (m, m, rad, m/s); dyn = (A, B, C, D)."""
+    A, B, C, D = dyn
     return matvec(A, Delta) + matvec(B, alpha) + matvec(C, Z) + D
 
 
@@ -79,29 +85,31 @@ def box_minimiser(P_inv, q, lo, hi):
 
 
 @njit(cache=True)
-def delta_update(A, B, C, D, P_inv, q, rho, lo, hi, Delta, alpha, Z, mu):
+def delta_update(dyn, box, rho, Delta, alpha, Z, mu):
     """argmin_Delta Phi_1 + mu'A Delta + rho/2 ||A Delta - c_Delta||^2, c_Delta = A Delta^k - F^k, when the box is
     inactive; (minimiser, inside the box, the QP's linear term)."""
-    c_Delta = matvec(A, Delta) - F(A, B, C, D, Delta, alpha, Z)
-    lin = q + rmatvec(A, mu - rho * c_Delta)
-    x, inside = box_minimiser(P_inv, lin, lo, hi)
+    A = dyn[0]
+    c_Delta = matvec(A, Delta) - F(dyn, Delta, alpha, Z)
+    lin = box.q + rmatvec(A, mu - rho * c_Delta)
+    x, inside = box_minimiser(box.P_inv, lin, box.lo, box.hi)
     return x, inside, lin
 
 
 @njit(cache=True)
-def alpha_update(A, B, C, D, P_inv, q, rho, lo, hi, Delta, alpha, Z, mu):
+def alpha_update(dyn, box, rho, Delta, alpha, Z, mu):
     """argmin_alpha Phi_2 + mu'B alpha + rho/2 ||B alpha - c_alpha||^2, c_alpha = B alpha^k - F(Delta^{k+1}, ...), when
     the box is inactive; (minimiser, inside the box, the QP's linear term)."""
-    c_alpha = matvec(B, alpha) - F(A, B, C, D, Delta, alpha, Z)
-    lin = q + rmatvec(B, mu - rho * c_alpha)
-    x, inside = box_minimiser(P_inv, lin, lo, hi)
+    B = dyn[1]
+    c_alpha = matvec(B, alpha) - F(dyn, Delta, alpha, Z)
+    lin = box.q + rmatvec(B, mu - rho * c_alpha)
+    x, inside = box_minimiser(box.P_inv, lin, box.lo, box.hi)
     return x, inside, lin
 
 
 @njit(cache=True)
-def z_residual(A, B, C, D, Delta, alpha, Z):
+def z_residual(dyn, Delta, alpha, Z):
     """c_Z = C Z^k - F(Delta^{k+1}, alpha^{k+1}, Z^k), the Z-update's target."""
-    return matvec(C, Z) - F(A, B, C, D, Delta, alpha, Z)
+    return matvec(dyn[2], Z) - F(dyn, Delta, alpha, Z)
 
 
 @njit(cache=True)
@@ -114,10 +122,10 @@ def inf_norm(a, b):
 
 
 @njit(cache=True)
-def mu_update(A, B, C, D, rho, Delta, alpha, Z, mu, old_Delta, old_alpha, old_Z):
+def mu_update(dyn, rho, Delta, alpha, Z, mu, old_Delta, old_alpha, old_Z):
     """mu + rho F(Delta, alpha, Z), with the stopping tests' ||F|| (state units) and iterate change (inf-norm over
     Delta, alpha, Z against the sweep's start)."""
-    residual = F(A, B, C, D, Delta, alpha, Z)
+    residual = F(dyn, Delta, alpha, Z)
     change = max(inf_norm(Delta, old_Delta), inf_norm(alpha, old_alpha), inf_norm(Z, old_Z))
     return mu + rho * residual, np.sqrt(np.sum(residual * residual)), change
 
@@ -126,22 +134,22 @@ stopped = njit(cache=True, inline="always")(admm.stopped)  # planner.admm's test
 
 
 @njit(cache=True, inline="always")
-def box_update(qp, cold, P, lo, hi, update):
+def box_update(qp, cold, box, update):
     """The box QP's minimiser from an update kernel's (minimiser, inside, linear term): the closed form, or DAQP's
-    (handle qp) when the box [lo, hi] is active; (x, DAQP's exit flag (1 for the closed form), whether DAQP was called)."""
+    (handle qp) when the Box is active; (x, DAQP's exit flag (1 for the closed form), whether DAQP was called)."""
     x, inside, lin = update
     if inside:
         return x, 1, False
-    x, flag = daqp_qp.solve(qp, cold, P, lin, lo, hi, NO_ROWS[0], NO_ROWS[1])
+    x, flag = daqp_qp.solve(qp, cold, box.P, lin, box.lo, box.hi, NO_ROWS[0], NO_ROWS[1])
     return x, flag, True
 
 
 @njit(cache=True)
-def admm_loop(dyn, d_box, a_box, zk, it, stop):
+def admm_loop(dyn, boxes, handles, zk, it, stop):
     """admm_solve's sweeps as one kernel for a compiled predictor (planner.jit_zstep.z_update): dyn = (A, B, C, D);
-    d_box, a_box: the Delta and alpha updates' Box; zk: the Z-step's ZKernel; it: the Iterate to start from; stop: Stop.
-    Returns a Loop."""
-    A, B, C, D = dyn
+    boxes, handles: the Delta and alpha updates' Box and DAQP handle; zk: the Z-step's ZKernel; it: the Iterate to
+    start from; stop: Stop. Returns a Loop."""
+    (d_box, a_box), (d_qp, a_qp) = boxes, handles
     Delta, alpha, Z, mu, radius, fresh, lin = it
     rho = zk.data.rho
     d_cold, a_cold, z_cold = True, True, True
@@ -149,22 +157,20 @@ def admm_loop(dyn, d_box, a_box, zk, it, stop):
     info = ZInfo(0, 0.0, np.inf, np.inf, np.inf)
     k, flag = 0, 1
     for k in range(1, stop.max_iters + 1):
-        new_Delta, flag, called = box_update(d_box.qp, d_cold, d_box.P, d_box.lo, d_box.hi, delta_update(
-            A, B, C, D, d_box.P_inv, d_box.q, rho, d_box.lo, d_box.hi, Delta, alpha, Z, mu))
+        new_Delta, flag, called = box_update(d_qp, d_cold, d_box, delta_update(dyn, d_box, rho, Delta, alpha, Z, mu))
         d_cold = d_cold and not called
         if flag < 1:
             break
-        new_alpha, flag, called = box_update(a_box.qp, a_cold, a_box.P, a_box.lo, a_box.hi, alpha_update(
-            A, B, C, D, a_box.P_inv, a_box.q, rho, a_box.lo, a_box.hi, new_Delta, alpha, Z, mu))
+        new_alpha, flag, called = box_update(a_qp, a_cold, a_box, alpha_update(dyn, a_box, rho, new_Delta, alpha, Z, mu))
         a_cold = a_cold and not called
         if flag < 1:
             break
-        new_Z, radius, lin, info, flag = z_update(zk, z_cold, lin, Z, mu, z_residual(A, B, C, D, new_Delta, new_alpha, Z),
-                                                  radius, fresh)
+        new_Z, radius, lin, info, flag = z_update(zk, z_cold, lin, Z, mu, z_residual(dyn, new_Delta, new_alpha, Z), radius,
+                                                  fresh)
         z_cold, fresh = False, False
         if flag < 1:
             break
-        mu, F_norm, step = mu_update(A, B, C, D, rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
+        mu, F_norm, step = mu_update(dyn, rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
         Delta, alpha, Z = new_Delta, new_alpha, new_Z
         verdict = stopped(F_norm, step, info.lin_offset, stop.tol_F, stop.tol_step)
         if verdict == CONVERGED:
@@ -176,8 +182,6 @@ def admm_loop(dyn, d_box, a_box, zk, it, stop):
 def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
     """admm_solve in one call of admm_loop (the Z-step a CompiledSQPZStep over a compiled predictor)."""
     zs, c = solvers.zstep, np.ascontiguousarray
-    box = lambda qp, q, role: Box(c(qp.P), c(qp.P_inv), c(q), c(qp.lo, float), c(qp.hi, float),
-                                  daqp_qp.shared(role, len(qp.lo)))
     T_p, M = len(st.Delta), zs.safety.history.shape[1]
     if st.zstate is None:
         radius, lin = zs.sqp.trust_radius, Lin(np.zeros((T_p, 2)), np.zeros((T_p, M, 2)), np.zeros((T_p, M, 2, T_p, 2)), False)
@@ -186,8 +190,9 @@ def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, to
     z_qp = daqp_qp.shared("z", len(zs.data.H), zs.safety.rows, zs.sqp.hard, zs.sqp.slack_penalty)  # hard form: elastic (soft) rows
     start = Iterate(c(st.Delta, float), c(st.alpha, float), c(st.Z, float), c(st.mu, float), float(radius),
                     st.zstate is None, lin)
-    out = admm_loop(tuple(c(M) for M in prob.dyn), box(solvers.delta_qp, prob.Phi_1.q, "delta"),
-                    box(solvers.alpha_qp, prob.Phi_2.q, "alpha"), zs.kernel(z_qp), start,
+    boxes = box(solvers.delta_qp, prob.Phi_1.q), box(solvers.alpha_qp, prob.Phi_2.q)
+    handles = tuple(daqp_qp.shared(role, len(b.lo)) for role, b in zip(("delta", "alpha"), boxes))
+    out = admm_loop(tuple(c(M) for M in prob.dyn), boxes, handles, zs.kernel(z_qp), start,
                     Stop(int(max_iters), float(tol_F), float(tol_step)))
     it, info = out.it, out.info
     optimal(it.Z, out.flag)
@@ -212,15 +217,15 @@ def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F,
         return compiled_solve(prob, solvers, st, max_iters, tol_F, tol_step)
     dyn = tuple(np.ascontiguousarray(M) for M in prob.dyn)
     d_qp, a_qp = DaqpBox(solvers.delta_qp), DaqpBox(solvers.alpha_qp)
+    d_box, a_box = box(solvers.delta_qp, prob.Phi_1.q), box(solvers.alpha_qp, prob.Phi_2.q)
     Delta, alpha, Z, mu, zstate = st
     F_norm = step = np.inf
     info, k = {}, 0
     for k in range(1, max_iters + 1):
-        new_Delta = box_solve(d_qp, delta_update(*dyn, d_qp.P_inv, prob.Phi_1.q, prob.rho, d_qp.lo, d_qp.hi, Delta, alpha, Z, mu))
-        new_alpha = box_solve(a_qp, alpha_update(*dyn, a_qp.P_inv, prob.Phi_2.q, prob.rho, a_qp.lo, a_qp.hi, new_Delta, alpha,
-                                                 Z, mu))
-        new_Z, zstate, info = solvers.zstep(Z, mu, z_residual(*dyn, new_Delta, new_alpha, Z), zstate)
-        mu, F_norm, step = mu_update(*dyn, prob.rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
+        new_Delta = box_solve(d_qp, delta_update(dyn, d_box, prob.rho, Delta, alpha, Z, mu))
+        new_alpha = box_solve(a_qp, alpha_update(dyn, a_box, prob.rho, new_Delta, alpha, Z, mu))
+        new_Z, zstate, info = solvers.zstep(Z, mu, z_residual(dyn, new_Delta, new_alpha, Z), zstate)
+        mu, F_norm, step = mu_update(dyn, prob.rho, new_Delta, new_alpha, new_Z, mu, Delta, alpha, Z)
         Delta, alpha, Z = new_Delta, new_alpha, new_Z
         verdict = admm.stopped(F_norm, step, info.get("lin_offset", 0.0), tol_F, tol_step)
         if verdict == CONVERGED:

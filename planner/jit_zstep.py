@@ -165,13 +165,13 @@ def clip(x, lo, hi):
 
 
 @njit(cache=True)
-def z_start(q_3, C, rho, mu, c_Z, Z, lo, hi):
-    """The Z-update's linear term Phi_3's q + C'(mu - rho c_Z) and Z^k clipped to the state box."""
-    return q_3 + rmatvec(C, mu - rho * c_Z), clip(Z, lo, hi)
+def z_start(data, mu, c_Z, Z):
+    """The Z-update's linear term Phi_3's q + C'(mu - rho c_Z) and Z^k clipped to the state box (data: ZData)."""
+    return data.q + rmatvec(data.C, mu - data.rho * c_Z), clip(Z, data.lo, data.hi)
 
 
 @njit(cache=True)
-def z_trial(x, Jb, c_lo, lo, hi, hard):
+def z_trial(x, Jb, c_lo, data, hard):
     """The QP's solution as a trial Z (clipped to the state box, met by DAQP only to its tolerance) and the largest
     violation of a linearised b_i row (m^2, 0 in penalty form)."""
     slack = 0.0
@@ -179,7 +179,7 @@ def z_trial(x, Jb, c_lo, lo, hi, hard):
         rows = matvec(Jb, x)
         for i in range(len(rows)):
             slack = max(slack, c_lo[i] - rows[i])
-    return clip(x, lo, hi), slack
+    return clip(x, data.lo, data.hi), slack
 
 
 @njit(cache=True)
@@ -241,7 +241,7 @@ def z_update(zk, cold, lin, Z, mu, c_Z, radius, fresh):
     data, sqp = zk.data, zk.sqp
     if fresh:
         radius = sqp.trust_radius
-    lin_q, Z = z_start(data.q, data.C, data.rho, mu, c_Z, Z, data.lo, data.hi)
+    lin_q, Z = z_start(data, mu, c_Z, Z)
     b, Jb, lin = safety_rows(zk.pred, zk.rows, lin, Z, 0.0 if fresh else sqp.reuse_radius)
     b_Z, slack, its, flag = b, 0.0, 0, 1
     for its in range(1, sqp.max_iters + 1):
@@ -250,7 +250,7 @@ def z_update(zk, cold, lin, Z, mu, c_Z, radius, fresh):
         cold = False
         if flag < 1:
             break
-        Z_new, slack = z_trial(x, Jb, c_lo, data.lo, data.hi, sqp.hard)
+        Z_new, slack = z_trial(x, Jb, c_lo, data, sqp.hard)
         b_new, Jb_new, lin = safety_rows(zk.pred, zk.rows, lin, Z_new, sqp.reuse_radius)
         accepted, radius, step = verdict(data.H, lin_q, Z, Z_new, b, Jb, b_new, radius, sqp)
         if accepted:
@@ -290,12 +290,12 @@ class CompiledSQPZStep:
         min b_i, lin_offset."""
         d, s = self.data, self.sqp
         radius, lin = (s.trust_radius, None) if zstate is None else zstate
-        lin_q, Z = z_start(d.q, d.C, d.rho, mu, c_Z, Z, d.lo, d.hi)
+        lin_q, Z = z_start(d, mu, c_Z, Z)
         b, Jb, lin = self.safety.linearize(Z, lin, 0.0 if zstate is None else s.reuse_radius)
         b_Z, slack, its = b, 0.0, 0
         for its in range(1, s.max_iters + 1):
             f, lo, hi, c_lo = z_qp(lin_q, Z, b, Jb, radius, d, s)
-            Z_new, slack = z_trial(self.qp.solve(f, lo, hi, Jb, c_lo), Jb, c_lo, d.lo, d.hi, s.hard)
+            Z_new, slack = z_trial(self.qp.solve(f, lo, hi, Jb, c_lo), Jb, c_lo, d, s.hard)
             b_new, lin = self.safety.trial(Z_new, lin, s.reuse_radius)
             accepted, radius, step = verdict(d.H, lin_q, Z, Z_new, b, Jb, b_new, radius, s)
             if accepted:
