@@ -3,7 +3,7 @@ beside the QP floor (the same ADMM with the safety linearisation frozen: no netw
 surrogate's and the teacher's solves are; cv and the student solve in one compiled call, below it) and the full-NLP baseline
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
 (cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
-(`<source>-ref`: mpc.core=reference, numpy and OSQP) and at a longer horizon (`<source>-T16`); then a profile of where
+(`<source>-ref`: mpc.admm.core=reference, numpy and OSQP) and at a longer horizon (`<source>-T16`); then a profile of where
 a step's time goes (the one-call ADMM solve, other compiled kernels, DAQP solves, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
@@ -158,11 +158,11 @@ def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix
 
 
 def variants(cfg: DictConfig, srcs: dict, states) -> dict:
-    """The sources of cfg.step_time.reference with mpc.core=reference (`<name>-ref`), of cfg.step_time.courteous with
+    """The sources of cfg.step_time.reference with mpc.admm.core=reference (`<name>-ref`), of cfg.step_time.courteous with
     mpc=courteous (`<name>-courteous`) and of cfg.step_time.horizon at its T_p (`<name>-T<T_p>`, on states collected at
     that horizon beside cfg.states.path)."""
     st, h = cfg.step_time, cfg.step_time.horizon
-    out = steps_with(srcs, [n for n in st.reference if n in srcs], states, ("mpc.core=reference",), st.repeats, "-ref")
+    out = steps_with(srcs, [n for n in st.reference if n in srcs], states, ("mpc.admm.core=reference",), st.repeats, "-ref")
     out.update(steps_with(srcs, [n for n in st.courteous if n in srcs], states, ("mpc=courteous",), st.repeats,
                           "-courteous"))
     names = [n for n in h.sources if n in srcs]

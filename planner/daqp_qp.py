@@ -1,4 +1,4 @@
-"""The one place DAQP (a dual active-set solver for small dense QPs) is called, by the compiled core (mpc.core=compiled):
+"""The one place DAQP (a dual active-set solver for small dense QPs) is called, by the compiled core (mpc.admm.core=compiled):
 the Delta- and alpha-update box QPs when their closed-form minimiser leaves the box, and the Z-step's QPs with b_i's
 linearisation as soft constraints priced by an L1 penalty, warm-started from the last working set within one ADMM solve.
 
