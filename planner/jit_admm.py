@@ -182,9 +182,10 @@ def admm_loop(dyn, boxes, handles, zk, it, stop):
 def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
     """admm_solve in one call of admm_loop (the Z-step a CompiledSQPZStep over a compiled predictor)."""
     zs, c = solvers.zstep, np.ascontiguousarray
-    T_p, M = len(st.Delta), zs.safety.history.shape[1]
-    if st.zstate is None:
-        radius, lin = zs.sqp.trust_radius, Lin(np.zeros((T_p, 2)), np.zeros((T_p, M, 2)), np.zeros((T_p, M, 2, T_p, 2)), False)
+    T_p, slots = len(st.Delta), zs.safety.history.shape[1]
+    if st.zstate is None:  # no linearisation yet: placeholders of its shapes, `taken` False
+        radius, lin = zs.sqp.trust_radius, Lin(np.zeros((T_p, 2)), np.zeros((T_p, slots, 2)),
+                                               np.zeros((T_p, slots, 2, T_p, 2)), False)
     else:
         radius, lin = st.zstate.radius, Lin(*st.zstate.lin, True)
     z_qp = daqp_qp.shared("z", len(zs.data.H), zs.safety.rows, zs.sqp.hard, zs.sqp.slack_penalty)  # hard form: elastic (soft) rows
