@@ -25,7 +25,8 @@ class Road:
 
     def lane_of(self, y):
         """Index of the lane whose centre is nearest to lateral position y (m)."""
-        return np.clip(np.rint(np.asarray(y) / self.lane_width), 0, self.lanes - 1).astype(int)
+        lane = np.rint(np.asarray(y) / self.lane_width)
+        return np.minimum(np.maximum(lane, 0), self.lanes - 1).astype(int)  # np.clip, without its microseconds of wrapping
 
     def centre(self, lane):
         """Lateral position (m) of lane `lane`'s centre."""
@@ -49,7 +50,7 @@ def steer_to(z, y_target, p: bicycle.BicycleParams, k_y=0.6, k_psi=2.0, delta_ma
     z = np.asarray(z, dtype=float)
     v = np.maximum(z[..., 3], 1.0)
     psi_d = np.arctan(k_y * (y_target - z[..., 1]) / v)
-    return np.clip((p.l_f + p.l_r) * k_psi * (psi_d - z[..., 2]) / v, -delta_max, delta_max)
+    return np.minimum(np.maximum((p.l_f + p.l_r) * k_psi * (psi_d - z[..., 2]) / v, -delta_max), delta_max)  # np.clip
 
 
 def corners(z, road: Road):
@@ -214,10 +215,10 @@ class World:
         w = np.zeros(len(self.z) - 1)
         yielders = np.flatnonzero(self.will_yield[1:]).tolist()
         if yielders:
-            ego_lanes = self.road.lane_of([z[0, 1] for z in self.seen]).tolist()  # once for all, not once per driver
-            for j in (i + 1 for i in yielders):
-                k = self.perceived(j)
-                w[j - 1] = self.encroachment(j, self.seen[k], ego_lanes[k])
+            ks = [self.perceived(i + 1) for i in yielders]
+            ego_lanes = self.road.lane_of([self.seen[k][0, 1] for k in ks]).tolist()  # in one call, not one per driver
+            for i, k, ego_lane in zip(yielders, ks, ego_lanes):
+                w[i] = self.encroachment(i + 1, self.seen[k], ego_lane)
         rate = np.array([min(1.0, self.params.dt / d.t_ramp) for d in self.drivers])
         self.response[1:] += rate * (w - self.response[1:])
         self.yielding = self.response > YIELD_LABEL
@@ -226,8 +227,10 @@ class World:
         """Driver j's acceleration (m/s^2): IDM to its leader, blended by its response towards IDM behind the ego
         (projected into its lane, braking capped at b_yield) while the ego is ahead of it."""
         d, s = self.drivers[j - 1], self.scene()
-        lanes = {s.lane[j], int(self.target_lane[j])}  # both while changing lane
-        a = min(self.idm_to(j, self.leader(j, lane)) for lane in lanes)
+        low, high = sorted((s.lane[j], int(self.target_lane[j])))  # its lane and its target lane
+        a = self.idm_to(j, self.leader(j, low))
+        if high != low:  # changing lane: the harder of both (lower lane first: of equal values, 0.0 and -0.0, min keeps the first)
+            a = min(a, self.idm_to(j, self.leader(j, high)))
         if self.response[j] == 0.0:
             return a
         ahead = unit((s.x[0] - s.x[j]) / d.x_ramp)  # nothing to yield to once the ego is behind
