@@ -292,7 +292,7 @@ MAKE_DATASET = {
                                                   "align_gain")},
     **{f"dataset.policy.{k}": Range() for k in ("dv_cruise", "dv_cruise2")},
     "dataset.branches.points": Int(0), "dataset.branches.reach": POS, "dataset.branches.steps": Int(1),
-    "dataset.branches.y_push": Range(0), "dataset.branches.dv": Range(0),
+    "dataset.branches.y_push": Range(0), "dataset.branches.dv": Range(0), "dataset.branches.cut_in": Bool(),
 }
 
 TRAINER = {

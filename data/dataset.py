@@ -4,7 +4,7 @@ Slots: 0 is the ego; 1..N hold the N other cars nearest the ego at each window's
 (front to back at the episode's start), each with its own past: data.perception's rule, the planner's. Coordinates are world metres: x along the road, y to the left.
 Besides each episode's own run (branch 0), counterfactual branches (1, 2, ...) restart a copy of the world at a few
 random steps where the ego can interact (same drivers, same hidden decisions) and drive the ego on differently for
-T_p steps: interventional data showing how the others react to what the ego does.
+branches.steps steps: interventional data showing how the others react to what the ego does.
 """
 import hashlib
 import json
@@ -64,12 +64,13 @@ class Intervention:
 
 
 def interventions(rng, world, y_ref, ranges):
-    """The counterfactual egos of one branch point: push on towards y_ref, back off to the start lane, change speed."""
+    """The counterfactual egos of one branch point: push on towards y_ref, back off to the start lane, change speed, and
+    with ranges["cut_in"] steer right into the target lane (what mpc=interactive's merging candidates ask about)."""
     y, v = (float(q) for q in world.states()[0, [1, 3]])
     push = Intervention(float(rng.uniform(*ranges["y_push"])) * y_ref, v)
     back = Intervention(0.0, v)
     speed = Intervention(y, max(0.0, v + float(rng.choice([-1.0, 1.0]) * rng.uniform(*ranges["dv"]))))
-    return [push, back, speed]
+    return [push, back, speed, *([Intervention(y_ref, v)] if ranges.get("cut_in") else [])]
 
 
 def can_interact(world, scenario, reach):
