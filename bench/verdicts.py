@@ -1,9 +1,9 @@
 """`python -m bench.verdicts [overrides]`: does each predictor tell the interactive step the truth? The predictor's part
 of mpc=interactive, apart from the step's.
 
-At held-out branch states of dense worlds (bench/branches.py: an exploratory ego driven to a moment where interaction is
-possible), the interactive strategy's candidate plans (planner.strategy.Interactive.plans) are judged by each source and
-by the world itself (the oracle: copies of that world with its true hidden decisions, the ego put on each plan). A
+At the states a closed loop visits on held-out dense worlds (the interactive step driven with the source `drive`, every
+`every`-th step until the episode ends: the moments a step waits, leans, and merges), the interactive strategy's
+candidate plans (planner.strategy.Interactive.plans) are judged by each source and by the world itself (the oracle: copies of that world with its true hidden decisions, the ego put on each plan). A
 candidate is a *good merge* when it merges within the horizon with the others outside the safety shape and nobody
 braking harder than mpc.b_courtesy. Per source, over every (state, candidate):
   false_alarm  the share of truly good merges the source refuses (why a step waits where it could merge);
@@ -15,7 +15,7 @@ and per state, the candidate it ranks first (planner.strategy.Interactive.order)
   takes_bad    a merge that is not good.
 95% intervals: percentile bootstrap over states for the candidate shares, Wilson for the per-state ones.
 
-    python -m bench.verdicts [states=30] [seed_offset=11000000] [sources=[cv,student,teacher,surrogate]]
+    python -m bench.verdicts [worlds=10] [every=5] [drive=cv] [seed_offset=11000000] [sources=[cv,student,teacher,surrogate]]
 """
 import csv
 import sys
@@ -23,16 +23,17 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.branches import branch_state, heldout_seeds
+from bench.branches import heldout_seeds
 from core import stats, validate
 from core.jobs import UserError, atomic_file, guarded, job_config, writable
+from data.perception import observe
 from planner import mpc, setup
 
 FORCED = 2.0  # m/s^2: below this the world's drivers brake for nothing much (issue 44's false-alarm definition)
 SCHEMA = {"sources": validate.ListOf(validate.GRADIENT_OPTIONS), "planner": validate.ListOf(validate.Text()),
           "models_dir": validate.Text(), "out_dir": validate.Text(), "seed_offset": validate.SEED,
-          "states": validate.Int(1), "branch.min_steps": validate.Int(0), "branch.max_steps": validate.Int(0),
-          "branch.reach": validate.POS, "branch.tries": validate.Int(1), "resamples": validate.Int(1)}
+          "worlds": validate.Int(1), "every": validate.Int(1), "drive": validate.GRADIENT_OPTIONS,
+          "resamples": validate.Int(1)}
 
 
 def sources(cfg) -> dict:
@@ -59,31 +60,38 @@ def verdicts(source, s, obs, plans) -> tuple:
     return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged)
 
 
+def visited(cfg, seed: int):
+    """(world, what the planner sees, the previous control) at every cfg.every-th step of the closed loop that
+    mpc=interactive with source cfg.drive drives on world `seed`: its recorded controls replayed on a fresh copy."""
+    pc = setup.planner_config(cfg.scenario.name, [f"gradients={cfg.drive}", "mpc=interactive", "method=admm",
+                                                  f"models_dir={cfg.models_dir}", *cfg.planner])
+    scenario, source, s = setup.setup(pc)
+    ep = setup.drive(pc, scenario, source, s, "admm", seed)
+    world, u_prev = scenario.make_world(seed), np.zeros(2)
+    for k, u in enumerate(ep.controls):
+        if k % cfg.every == 0:
+            yield world, observe(world, pc.n_slots, pc.T_obs), u_prev
+        world.step(u)
+        u_prev = u
+
+
 def run(cfg) -> dict:
-    """{source: scores} over cfg.states held-out branch states; writes <out_dir>/verdicts.csv."""
-    scenario = setup.setup(setup.planner_config(cfg.scenario.name, ["gradients=cv"]))[0]
+    """{source: scores} over the states visited on cfg.worlds held-out worlds; writes <out_dir>/verdicts.csv."""
     judges = sources(cfg)
-    seeds = heldout_seeds("seed_offset", cfg.seed_offset, cfg.states * cfg.branch.tries, cfg.dataset)
     per_state = {name: [] for name in judges}
-    for seed in seeds:
-        state = branch_state(scenario, cfg.dataset.policy, seed, cfg.branch, np.random.default_rng([seed, 3]), cfg.n_slots)
-        if state is None:
-            continue
-        _, world, seen = state
-        obs = mpc.Observation(world.states()[0], np.zeros(2), seen.history)
-        s = judges["oracle"][1]
-        names, Delta, alpha, Z, _ = s.strategy.plans(s, obs, None)
-        judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
-        true_good, true_merge, true_brake, true_order = verdicts(*judges["oracle"], obs, (Delta, alpha, Z))
-        for name, (source, s_) in judges.items():
-            good, merges, brake, order = verdicts(source, s_, obs, (Delta, alpha, Z))
-            per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,
-                                    "true_merge": true_merge, "brake": brake, "true_brake": true_brake, "first": order[0],
-                                    "b_c": s_.b_courtesy})
-        if len(per_state["oracle"]) == cfg.states:
-            break
-    else:
-        raise UserError(f"only {len(per_state['oracle'])} of states={cfg.states} branch states found; raise branch.tries")
+    for seed in heldout_seeds("seed_offset", cfg.seed_offset, cfg.worlds, cfg.dataset):
+        for world, seen, u_prev in visited(cfg, seed):
+            obs = mpc.Observation(world.states()[0], u_prev, seen.history)
+            s = judges["oracle"][1]
+            plans = s.strategy.plans(s, obs, None)[1:4]
+            judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
+            true_good, true_merge, _, _ = truth = verdicts(*judges["oracle"], obs, plans)
+            true_brake = truth[2]
+            for name, (source, s_) in judges.items():
+                good, merges, brake, order = verdicts(source, s_, obs, plans)
+                per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,
+                                        "true_merge": true_merge, "brake": brake, "true_brake": true_brake,
+                                        "first": order[0], "b_c": s_.b_courtesy})
     return {name: scores(rows, cfg.resamples, cfg.seed_offset) for name, rows in per_state.items()}
 
 
@@ -129,7 +137,8 @@ def main(overrides=()) -> dict:
     table = run(cfg)
     write(path, table)
     pct = lambda r, k: f"{100 * r[k]:.1f} [{100 * r[k + '_lo']:.1f}, {100 * r[k + '_hi']:.1f}]"
-    print(f"{cfg.states} held-out branch states of {cfg.scenario.name} (seeds from {cfg.seed_offset}); "
+    print(f"{table['oracle']['states']} states that mpc=interactive with {cfg.drive} visits on {cfg.worlds} held-out "
+          f"{cfg.scenario.name} worlds (seeds from {cfg.seed_offset}), every {cfg.every}th step; "
           f"{table['oracle']['states_with_good']} have a good merge by the world's verdict; {path}")
     print("| source | false alarm % | miss % | brake false alarm % | takes a good merge % | takes a bad merge % |")
     print("|---|---|---|---|---|---|")

@@ -17,12 +17,12 @@ def test_the_scores_count_refused_good_merges_accepted_bad_ones_and_the_first_ch
 
 
 def test_the_world_agrees_with_itself_and_a_bad_value_is_one_line(tmp_path, capsys):
-    table = verdicts.main(["states=1", "sources=[cv]", "resamples=10", "branch.max_steps=12", f"out_dir={tmp_path}",
+    table = verdicts.main(["worlds=1", "every=20", "sources=[cv]", "resamples=10", f"out_dir={tmp_path}",
                            "planner=['mpc.strategy.horizon=8','mpc.strategy.merge_steps=[0,4]']"])  # small, for speed
     assert set(table) == {"cv", "oracle"} and (tmp_path / "verdicts.csv").is_file()
     assert table["oracle"]["miss"] in (0.0,) or np.isnan(table["oracle"]["miss"])
     assert table["oracle"]["false_alarm"] in (0.0,) or np.isnan(table["oracle"]["false_alarm"])
     assert table["oracle"]["brake_fa"] == 0.0
     with pytest.raises(SystemExit):
-        verdicts.main(["states=0"])
-    assert capsys.readouterr().err.strip() == "error: states=0: must be an integer >= 1"
+        verdicts.main(["worlds=0"])
+    assert capsys.readouterr().err.strip() == "error: worlds=0: must be an integer >= 1"
