@@ -60,9 +60,9 @@ batch: $(STAMP)
 	$(BIN)/planner scenario=random episodes=1000 seed=2000000 gradients=surrogate method=both
 
 # The clairvoyant ceiling on 200 held-out dense worlds (seeds from 2,000,000) and with every driver stubborn: the strategy
-# library (77% of the time), then its cross-entropy refinement; about 31 minutes on 2 cores (18.5 processor seconds a
-# world, measured on 12 tuning worlds on a busy machine; docs/studies.md). The same for other scenarios: `ceiling
-# scenario=dense_deadline episodes=200`; `backend=ray ray.address=auto` for a cluster; a planner batch's runs as further
+# library, then its cross-entropy refinement; about 10 minutes on 2 cores (5.7 processor seconds a world, measured on 12
+# tuning worlds on a busy machine; docs/studies.md). The same for other scenarios: `ceiling scenario=dense_deadline
+# episodes=200`; `backend=ray ray.address=auto` for a cluster; a planner batch's runs as further
 # starts: 'starts=["<its out_dir>/steps/admm_{seed}.csv"]' (planner/batch.py writes them; `make results` passes them all).
 ceiling: $(STAMP)
 	$(BIN)/ceiling scenario=dense episodes=200 seed=2000000
