@@ -165,10 +165,10 @@ class Rules:
         return min(plans, key=lambda p: (excess(p[1]), (0, p[1].J) if merges(p[1]) else (1, p[0].rank, p[1].J)))
 
 
-def paces(s: Settings, history, H: int, tau_x: float) -> dict:
+def paces(s: Settings, history, H: int, tau_x: float, stream_dv=(0.0,)) -> dict:
     """The longitudinal profiles a candidate may follow over H steps, from the last two observed steps of the history
     (T_obs, SLOTS, 2): {name: (v_target (H,) m/s, x_target (H,) m or NaN: speed only)}. Stopped; the ego's own speed;
-    the target lane's mean; and for each gap between two consecutive target-lane cars seen, its middle as both cars
+    the target lane's mean plus each of stream_dv (m/s: below it, the stream passes a leaning ego car by car); and for each gap between two consecutive target-lane cars seen, its middle as both cars
     would move at their observed speeds, tracked with time constant tau_x (s): where a merge into that gap would start."""
     x, y = history[-1, :, 0], history[-1, :, 1]
     v = (x - history[-2, :, 0]) / s.params.dt
@@ -177,7 +177,7 @@ def paces(s: Settings, history, H: int, tau_x: float) -> dict:
     out = {"stop": speed(0.0), "own": speed(v[0])}
     target = np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
     if len(target):
-        out["stream"] = speed(v[target].mean())
+        out.update({f"stream {dv:+.1f} m/s" if dv else "stream": speed(max(0.0, v[target].mean() + dv)) for dv in stream_dv})
     target = target[np.argsort(x[target])]
     for back, front in zip(target[:-1], target[1:]):
         v_gap = 0.5 * (v[back] + v[front])
@@ -185,6 +185,16 @@ def paces(s: Settings, history, H: int, tau_x: float) -> dict:
         name = f"gap {x[back] - x[0]:+.0f}..{x[front] - x[0]:+.0f} m"
         out[name] = (np.full(H, v_gap), middle)
     return out
+
+
+def entering_speed(s: Settings, history) -> float:
+    """The speed (m/s) a candidate holds once in the target lane: the observed speed of the nearest target-lane car ahead
+    of the ego, else the target lane's mean, else the ego's own, from the last two steps of the history (T_obs, SLOTS, 2)."""
+    x, y = history[-1, :, 0], history[-1, :, 1]
+    v = (x - history[-2, :, 0]) / s.params.dt
+    target = np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
+    ahead = target[x[target] > x[0]]
+    return float(v[ahead[np.argmin(x[ahead])]] if len(ahead) else v[target].mean() if len(target) else v[0])
 
 
 def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x: float = 1.0):
@@ -235,6 +245,7 @@ class Interactive:
     horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges a candidate; at least T_p
     tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
     tau_x: float = rule(Real(0, lo_open=True))  # s: time constant of a gap-targeting candidate closing on the gap's middle
+    stream_dv: tuple = rule(ListOf(Real(), at_least=1))  # m/s: the speeds relative to the stream's mean a candidate may hold
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
     merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
 
@@ -249,11 +260,12 @@ class Interactive:
         lateral = {"merged": np.full(H, s.y_ref)} if towards == 0 else {
             "wait": np.full(H, lane_y), "lean": np.full(H, lane_y + towards * self.lean),
             **{f"merge after {m}": np.where(np.arange(H) < m, lane_y + towards * self.lean, s.y_ref) for m in self.merge_steps}}
-        pace = paces(s, obs.history, H, self.tau_x)
+        pace = paces(s, obs.history, H, self.tau_x, self.stream_dv)
         names = [f"{lat}, {p}" for lat in lateral for p in pace]
         y_t = np.array([lateral[lat] for lat in lateral for _ in pace])
-        v_t = np.array([v for _ in lateral for v, _ in pace.values()])
         x_t = np.array([x for _ in lateral for _, x in pace.values()])
+        v_t = np.array([v for _ in lateral for v, _ in pace.values()])
+        v_t = np.where((y_t == s.y_ref) & np.isnan(x_t), entering_speed(s, obs.history), v_t)  # in the lane: its leader's pace
         Delta, alpha, Z = track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x)
         aims = [(y[s.T_p - 1], z[4 * s.T_p - 1]) for y, z in zip(y_t, Z)]  # its lateral target, the speed it reaches
         if warm is not None:  # the shifted previous plan, its last control held beyond it
