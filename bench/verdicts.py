@@ -54,9 +54,8 @@ def verdicts(source, s, obs, plans) -> tuple:
     """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order) of the K candidate plans as `source`
     judges them."""
     judged = s.strategy.judge(s, obs, source, *plans)
-    b_c = np.inf if s.b_courtesy is None else s.b_courtesy
-    good = np.array([j.b_min >= 0.0 and j.braking <= b_c and j.merge <= s.strategy.horizon for j in judged])
     merges = np.array([j.merge <= s.strategy.horizon for j in judged])
+    good = merges & [s.strategy.acceptable(s, j) for j in judged]
     return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged)
 
 
@@ -85,8 +84,7 @@ def run(cfg) -> dict:
             s = judges["oracle"][1]
             plans = s.strategy.plans(s, obs, None)[1:4]
             judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
-            true_good, true_merge, _, _ = truth = verdicts(*judges["oracle"], obs, plans)
-            true_brake = truth[2]
+            true_good, true_merge, true_brake, _ = verdicts(*judges["oracle"], obs, plans)
             for name, (source, s_) in judges.items():
                 good, merges, brake, order = verdicts(source, s_, obs, plans)
                 per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,

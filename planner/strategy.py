@@ -49,6 +49,14 @@ class Paper:
         return plans[0]
 
 
+def seen_target_lane(s: Settings, history):
+    """(x (SLOTS,) m, v (SLOTS,) m/s, the slots of the other cars in the target lane) from the last two observed steps
+    of the history (T_obs, SLOTS, 2)."""
+    x, y = history[-1, :, 0], history[-1, :, 1]
+    v = (x - history[-2, :, 0]) / s.params.dt
+    return x, v, np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
+
+
 @dataclass(frozen=True)
 class KeepAhead:
     """When the nearest target-lane car behind the ego (within `near` m) is seen slowing for it, the lean starts aim at
@@ -67,17 +75,13 @@ class KeepAhead:
         (T_obs, SLOTS, 2) shows it slowing for the ego; None when there is none, or it is not slowing."""
         if len(history) < 3:  # no acceleration to read
             return None
-        dt = s.params.dt
-        x, y = history[-1, :, 0], history[-1, :, 1]
-        v = (history[-1, :, 0] - history[-2, :, 0]) / dt
-        in_target = s.road.lane_of(y) == s.road.lane_of(s.y_ref)
-        in_target[0] = False
-        behind = np.flatnonzero(in_target & (x <= x[0]) & (x >= x[0] - self.near))
+        x, v, target = seen_target_lane(s, history)
+        behind = target[(x[target] <= x[0]) & (x[target] >= x[0] - self.near)]
         if len(behind) == 0:
             return None
         b = behind[np.argmax(x[behind])]
-        decel = -(history[-1, b, 0] - 2 * history[-2, b, 0] + history[-3, b, 0]) / dt**2
-        ahead = np.flatnonzero(in_target & (x > x[0]))
+        decel = -(history[-1, b, 0] - 2 * history[-2, b, 0] + history[-3, b, 0]) / s.params.dt**2
+        ahead = target[x[target] > x[0]]
         lag = v[ahead[np.argmin(x[ahead])]] - v[b] if len(ahead) else 0.0
         return float(v[b]) if decel > self.slowing or lag > self.slower else None
 
@@ -168,14 +172,13 @@ class Rules:
 def paces(s: Settings, history, H: int, tau_x: float, stream_dv=(0.0,)) -> dict:
     """The longitudinal profiles a candidate may follow over H steps, from the last two observed steps of the history
     (T_obs, SLOTS, 2): {name: (v_target (H,) m/s, x_target (H,) m or NaN: speed only)}. Stopped; the ego's own speed;
-    the target lane's mean plus each of stream_dv (m/s: below it, the stream passes a leaning ego car by car); and for each gap between two consecutive target-lane cars seen, its middle as both cars
-    would move at their observed speeds, tracked with time constant tau_x (s): where a merge into that gap would start."""
-    x, y = history[-1, :, 0], history[-1, :, 1]
-    v = (x - history[-2, :, 0]) / s.params.dt
+    the target lane's mean plus each of stream_dv (m/s: below it, the stream passes a leaning ego car by car); and for
+    each gap between two consecutive target-lane cars seen, its middle as both cars would move at their observed
+    speeds, tracked with time constant tau_x (s): where a merge into that gap would start."""
+    x, v, target = seen_target_lane(s, history)
     t = np.arange(1, H + 1) * s.params.dt
     speed = lambda u: (np.full(H, u), np.full(H, np.nan))
     out = {"stop": speed(0.0), "own": speed(v[0])}
-    target = np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
     if len(target):
         out.update({f"stream {dv:+.1f} m/s" if dv else "stream": speed(max(0.0, v[target].mean() + dv)) for dv in stream_dv})
     target = target[np.argsort(x[target])]
@@ -190,9 +193,7 @@ def paces(s: Settings, history, H: int, tau_x: float, stream_dv=(0.0,)) -> dict:
 def entering_speed(s: Settings, history) -> float:
     """The speed (m/s) a candidate holds once in the target lane: the observed speed of the nearest target-lane car ahead
     of the ego, else the target lane's mean, else the ego's own, from the last two steps of the history (T_obs, SLOTS, 2)."""
-    x, y = history[-1, :, 0], history[-1, :, 1]
-    v = (x - history[-2, :, 0]) / s.params.dt
-    target = np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
+    x, v, target = seen_target_lane(s, history)
     ahead = target[x[target] > x[0]]
     return float(v[ahead[np.argmin(x[ahead])]] if len(ahead) else v[target].mean() if len(target) else v[0])
 
@@ -291,12 +292,16 @@ class Interactive:
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
         return [Judged(*x) for x in zip(b, braking, merge, J)]
 
+    @staticmethod
+    def acceptable(s: Settings, j: Judged) -> bool:
+        """Whether a verdict finds its candidate safe (b_min >= 0) and courteous (braking <= b_courtesy)."""
+        return j.b_min >= 0.0 and (s.b_courtesy is None or j.braking <= s.b_courtesy)
+
     def order(self, s: Settings, judged: list[Judged]) -> list[int]:
-        """Candidates best first: those the predictor finds safe and courteous (b_min >= 0, braking <= b_courtesy),
-        then by the earliest merge and the lowest J; the others after them, the least unsafe first."""
+        """Candidates best first: the acceptable ones by the earliest merge and the lowest J; the others after them, the
+        least unsafe first."""
         b_c = np.inf if s.b_courtesy is None else s.b_courtesy
-        ok = lambda j: j.b_min >= 0.0 and j.braking <= b_c
-        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, judged[k].J) if ok(judged[k])
+        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, judged[k].J) if self.acceptable(s, judged[k])
                       else (1, -min(judged[k].b_min, 0.0), max(judged[k].braking - b_c, 0.0)))
 
     def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
