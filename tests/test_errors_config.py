@@ -142,7 +142,7 @@ NO_GROUPS = ["none: every setting is a key below"]
 
 
 @pytest.mark.parametrize("command,groups,foreign", [
-    ("make-dataset", ["dataset: large | small | tiny  (now small)", f"scenario: {' | '.join(options('scenario'))}  (now dense)"],
+    ("make-dataset", ["dataset: interactive | large | small | tiny  (now small)", f"scenario: {' | '.join(options('scenario'))}  (now dense)"],
      ["model:", "trainer:"]),
     ("distill", ["model: student | student_certifiable | student_wide | teacher  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
     ("surrogate", ["paper: table1  (now table1)"], ["dataset:", "model:", "scenario:", "trainer:"]),
