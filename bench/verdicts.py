@@ -59,12 +59,11 @@ def verdicts(source, s, obs, plans) -> tuple:
     return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged)
 
 
-def visited(cfg, seed: int):
+def visited(cfg, driver, seed: int):
     """(world, what the planner sees, the previous control) at every cfg.every-th step of the closed loop that
-    mpc=interactive with source cfg.drive drives on world `seed`: its recorded controls replayed on a fresh copy."""
-    pc = setup.planner_config(cfg.scenario.name, [f"gradients={cfg.drive}", "mpc=interactive", "method=admm",
-                                                  f"models_dir={cfg.models_dir}", *cfg.planner])
-    scenario, source, s = setup.setup(pc)
+    `driver` ((planner config, scenario, source, settings) of mpc=interactive with cfg.drive) drives on world `seed`:
+    its recorded controls replayed on a fresh copy."""
+    pc, scenario, source, s = driver
     ep = setup.drive(pc, scenario, source, s, "admm", seed)
     world, u_prev = scenario.make_world(seed), np.zeros(2)
     for k, u in enumerate(ep.controls):
@@ -77,9 +76,12 @@ def visited(cfg, seed: int):
 def run(cfg) -> dict:
     """{source: scores} over the states visited on cfg.worlds held-out worlds; writes <out_dir>/verdicts.csv."""
     judges = sources(cfg)
+    pc = setup.planner_config(cfg.scenario.name, [f"gradients={cfg.drive}", "mpc=interactive", "method=admm",
+                                                  f"models_dir={cfg.models_dir}", *cfg.planner])
+    driver = (pc, *setup.setup(pc))  # built once: the closed loop of every world
     per_state = {name: [] for name in judges}
     for seed in heldout_seeds("seed_offset", cfg.seed_offset, cfg.worlds, cfg.dataset):
-        for world, seen, u_prev in visited(cfg, seed):
+        for world, seen, u_prev in visited(cfg, driver, seed):
             obs = mpc.Observation(world.states()[0], u_prev, seen.history)
             s = judges["oracle"][1]
             plans = s.strategy.plans(s, obs, None)[1:4]
