@@ -20,11 +20,17 @@ def _xp(a):
 
 def rollout(phi, history, ego_future):
     """Predicted xy of every slot (B, T_p, SLOTS, 2): history (B, T_obs, SLOTS, 2), ego_future (B, T_p, 2) = ego xy at 1..T_p."""
+    return react(phi, history, lambda window, tau: ego_future[:, tau], ego_future.shape[1])
+
+
+def react(phi, history, ego_next, T):
+    """Predicted xy of every slot (B, T, SLOTS, 2) over T steps from history (B, T_obs, SLOTS, 2), the ego's xy at each
+    step tau + 1 given by ego_next(window (B, T_obs, SLOTS, 2) ending at step tau, tau) -> (B, 2): a plan fixed in
+    advance, or a feedback policy that answers the others' predicted moves (closed loop)."""
     xp = _xp(history)
     window, out = history, []
-    for tau in range(ego_future.shape[1]):
-        nxt = phi(window)
-        nxt = xp.concatenate([ego_future[:, tau, None, :], nxt[:, 1:]], axis=1)
+    for tau in range(T):
+        nxt = xp.concatenate([ego_next(window, tau)[:, None, :], phi(window)[:, 1:]], axis=1)
         out.append(nxt)
         window = xp.concatenate([window[:, 1:], nxt[:, None]], axis=1)
     return xp.stack(out, axis=1)

@@ -198,26 +198,90 @@ def entering_speed(s: Settings, history) -> float:
     return float(v[ahead[np.argmin(x[ahead])]] if len(ahead) else v[target].mean() if len(target) else v[0])
 
 
+def drive(s: Settings, z, y_target, a):
+    """Controls delta, a (K,) in rad, m/s^2 and next states (K, 4) of K egos in states z (K, 4) that steer to the lateral
+    targets y_target (K,) in m, their heading held within psi_box, accelerating at a (K,) within a_box, never reversing."""
+    p = s.params
+    v = np.maximum(z[:, 3], 1.0)
+    psi_d = np.clip(np.arctan(0.6 * (y_target - z[:, 1]) / v), *s.psi_box)
+    d = np.clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, *s.delta_box)
+    a = np.maximum(np.clip(a, *s.a_box), -z[:, 3] / p.dt)
+    return d, a, bicycle.step(z, np.stack([d, a], -1), p)
+
+
 def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x: float = 1.0):
     """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
-    (K, H) in m, their heading held within psi_box, while their speed approaches v_target (K, H) in m/s with time
-    constant tau (s) within a_box, never reversing; where x_target (K, H) in m is given (not NaN), the speed aimed at
-    also closes the distance to it with time constant tau_x (s)."""
+    (K, H) in m (drive) while their speed approaches v_target (K, H) in m/s with time constant tau (s); where x_target
+    (K, H) in m is given (not NaN), the speed aimed at also closes the distance to it with time constant tau_x (s)."""
     K, H = y_target.shape
     x_target = np.full((K, H), np.nan) if x_target is None else x_target
     z = np.repeat(np.asarray(z0, float)[None], K, 0)
-    Delta, alpha, Z, p = [], [], [], s.params
+    Delta, alpha, Z = [], [], []
     for k in range(H):
-        v = np.maximum(z[:, 3], 1.0)
-        psi_d = np.clip(np.arctan(0.6 * (y_target[:, k] - z[:, 1]) / v), *s.psi_box)
-        d = np.clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, *s.delta_box)
         v_aim = np.maximum(0.0, v_target[:, k] + np.nan_to_num((x_target[:, k] - z[:, 0]) / tau_x))
-        a = np.maximum(np.clip((v_aim - z[:, 3]) / tau, *s.a_box), -z[:, 3] / p.dt)
-        z = bicycle.step(z, np.stack([d, a], -1), p)
+        d, a, z = drive(s, z, y_target[:, k], (v_aim - z[:, 3]) / tau)
         Delta.append(d)
         alpha.append(a)
         Z.append(z)
     return np.stack(Delta, 1), np.stack(alpha, 1), np.concatenate(Z, 1)
+
+
+class Chase:
+    """K closed-loop candidates, each chasing one gap of the target lane as the predictor moves its cars: the ego's
+    speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop 2 m before
+    the lane's end at 2.5 m/s^2; within `align` m of the middle it leans to lean_y (m) to ask for room; once the
+    predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target lane, and there follows
+    the nearest car ahead by IDM. The predictor's rollout calls it once a step (Source.react)."""
+
+    FOLLOW = IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0)  # the ego's own car-following once in the target lane
+    OPEN = 60.0  # m: where a gap without a front (back) car is taken to end, ahead of (behind) the ego
+
+    def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, tau: float,
+                 tau_x: float, align: float):
+        self.s, self.gaps, self.lean_y, self.clearance = s, np.asarray(gaps), np.asarray(lean_y), np.asarray(clearance)
+        self.lane_y, self.lane_end, self.tau, self.tau_x, self.align = lane_y, lane_end, tau, tau_x, align
+        self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
+        self.Delta, self.alpha, self.Z = [], [], []
+
+    def __call__(self, window, k):
+        """The egos' xy (K, 2) one step on from the last step of the predicted windows (K, T_obs, SLOTS, 2)."""
+        s, z, K = self.s, self.z, len(self.gaps)
+        x, y = window[:, -1, :, 0], window[:, -1, :, 1]
+        v = (x - window[:, -2, :, 0]) / s.params.dt  # (K, SLOTS)
+        rows = np.arange(K)
+        front, back = self.gaps[:, 0], self.gaps[:, 1]
+        x_front = np.where(front > 0, x[rows, front], z[:, 0] + self.OPEN)
+        x_back = np.where(back > 0, x[rows, back], z[:, 0] - self.OPEN)
+        known = np.stack([front > 0, back > 0], 1)
+        v_pair = np.stack([v[rows, front], v[rows, back]], 1)
+        v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
+        middle = 0.5 * (x_front + x_back)
+        room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
+        stop = np.sqrt(5.0 * np.maximum(0.0, self.lane_end - 2.0 - z[:, 0]))
+        a = (np.minimum(v_gap + (middle - z[:, 0]) / self.tau_x, stop) - z[:, 3]) / self.tau
+        y_t = np.where(room >= self.clearance, s.y_ref,
+                       np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
+        target = np.abs(y[:, 1:] - s.y_ref) < s.road.lane_width / 2
+        for b in np.flatnonzero(np.abs(z[:, 1] - s.y_ref) < s.road.lane_width / 4):  # in: follow the car ahead
+            ahead = np.flatnonzero(target[b] & (x[b, 1:] > z[b, 0])) + 1
+            lead = ahead[np.argmin(x[b, ahead])] if len(ahead) else None
+            a[b] = (self.FOLLOW.acceleration(z[b, 3]) if lead is None else
+                    self.FOLLOW.acceleration(z[b, 3], x[b, lead] - z[b, 0] - s.road.car_length, v[b, lead]))
+            y_t[b] = s.y_ref
+        d, a, self.z = drive(s, z, y_t, a)
+        self.Delta.append(d)
+        self.alpha.append(a)
+        self.Z.append(self.z)
+        return self.z[:, :2]
+
+
+def gaps(s: Settings, history) -> list:
+    """The gaps of the target lane seen in the last step of the history (T_obs, SLOTS, 2), back to front: (name, front
+    slot, back slot), slot 0 where the gap is open ahead (behind)."""
+    x, _, target = seen_target_lane(s, history)
+    cars = [0, *target[np.argsort(x[target])], 0]
+    where = lambda i: f"{x[i] - x[0]:+.0f}" if i else "open"
+    return [(f"{where(back)}..{where(front)} m", front, back) for back, front in zip(cars[:-1], cars[1:])]
 
 
 class Judged(NamedTuple):
@@ -232,14 +296,16 @@ class Judged(NamedTuple):
 
 @dataclass(frozen=True)
 class Interactive:
-    """mpc=interactive: no behaviour rule. Candidate plans (wait in lane, lean towards the target lane by `lean`, or lean
-    and then steer into it after each of `merge_steps`, each with a longitudinal profile (`paces`): stopped, its own
-    speed, the stream's, or closing on the middle of a gap between two target-lane cars) are rolled out by the predictor
-    over `horizon` steps
-    (beyond T_p, so a plan that positions for a later merge has a value). A candidate counts when the predicted others
-    stay outside the safety shape and nobody is predicted to brake harder than b_courtesy; among those the earliest
-    merge, then the lowest J. The best `refine` are refined by ADMM (Algorithm 1) towards their own aim and also offered
-    as they are; the plan applied is the first by that order whose step-horizon braking stays within b_courtesy."""
+    """mpc=interactive: no behaviour rule. Two families of candidate plans, each rolled out by the predictor over
+    `horizon` steps (beyond T_p, so a plan that positions for a later merge has a value). Open loop: wait in lane, lean
+    towards the target lane by `lean`, or lean and then steer into it after each of `merge_steps`, each with a
+    longitudinal profile (`paces`: stopped, its own speed, the stream's, or closing on the middle of a gap between two
+    target-lane cars). Closed loop (`Chase`): for each gap seen in the target lane, each depth of `chase_lean` and each
+    `clearance`, a policy that answers the predictor's moves step by step (the predictor's own recursion drives it:
+    Source.react). A candidate counts when the predicted others stay outside the safety shape and nobody is predicted to
+    brake harder than b_courtesy; among those the earliest merge, then the lowest J. The best `refine` are refined by
+    ADMM (Algorithm 1) towards their own aim and also offered as they are; the plan applied is the first by that order
+    whose step-horizon braking stays within b_courtesy."""
 
     lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
     merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
@@ -247,6 +313,10 @@ class Interactive:
     tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
     tau_x: float = rule(Real(0, lo_open=True))  # s: time constant of a gap-targeting candidate closing on the gap's middle
     stream_dv: tuple = rule(ListOf(Real(), at_least=1))  # m/s: the speeds relative to the stream's mean a candidate may hold
+    chase_lean: tuple = rule(ListOf(Real(0)))  # m: how far a gap-chasing candidate leans to ask for room; []: no such candidates
+    clearance: tuple = rule(ListOf(Real(0), at_least=1))  # m: predicted bumper clearance to both gap cars at which a chasing candidate enters
+    align: float = rule(Real(0))  # m: a chasing candidate leans only this close to its gap's middle
+    lane_end: float = rule(Real())  # m: where the ego's lane ends (the scenario's x_ref): a chasing candidate can always stop before it
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
     merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
 
@@ -254,7 +324,8 @@ class Interactive:
         check_fields(self, "mpc.strategy")
 
     def plans(self, s: Settings, obs: Observation, warm):
-        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every candidate over the horizon H."""
+        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every open-loop candidate over the
+        horizon H."""
         H, y0 = max(self.horizon, s.T_p), obs.z0[1]
         lane_y = s.road.centre(s.road.lane_of(y0))
         towards = np.sign(s.y_ref - lane_y)
@@ -278,11 +349,31 @@ class Interactive:
             Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
         return names, Delta, alpha, Z, aims
 
+    def chased(self, s: Settings, obs: Observation, source):
+        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims, values (K, H, SLOTS, 2)) of the closed-loop candidates
+        (Chase), each driven against the predictor's rollout in one batched recursion."""
+        H, lane_y = max(self.horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
+        lean_y = [lane_y + np.sign(s.y_ref - lane_y) * d for d in self.chase_lean]
+        combos = [(g, y, c) for g in gaps(s, obs.history) for y in lean_y for c in self.clearance]
+        if not combos or s.road.lane_of(obs.z0[1]) == s.road.lane_of(s.y_ref):
+            return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), [], np.empty((0, H, *np.shape(obs.history)[1:]))
+        policy = Chase(s, obs.z0, [(f, b) for (_, f, b), _, _ in combos], [y for _, y, _ in combos],
+                       [c for _, _, c in combos], lane_y, self.lane_end, self.tau, self.tau_x, self.align)
+        values = source.react(obs.history, policy, H, len(combos))
+        names = [f"chase gap {g}, lean to {y:.2f} m, enter at {c} m" for (g, _, _), y, c in combos]
+        Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
+        aims = [(z[4 * s.T_p - 3], z[4 * s.T_p - 1]) for z in Z]  # where it is, how fast, at T_p
+        return names, Delta, alpha, Z, aims, values
+
     def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
-        """The predictor's verdict on each candidate (K, H): one batched rollout of its values under every plan."""
+        """The predictor's verdict on each open-loop candidate (K, H): one batched rollout of its values under every plan."""
+        K, H = Delta.shape
+        return self.verdicts(s, obs, source.values(obs.history, Z.reshape(K, H, 4)[:, :, :2]), Delta, alpha, Z)
+
+    def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
+        """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H)."""
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
-        values = source.values(obs.history, ego[:, :, :2])
         b = [b_i(v, s.R, s.stretch, s.shape).min(initial=np.inf) for v in values]
         history = np.broadcast_to(obs.history, (K, *np.shape(obs.history)))
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
@@ -305,12 +396,16 @@ class Interactive:
                       else (1, -min(judged[k].b_min, 0.0), max(judged[k].braking - b_c, 0.0)))
 
     def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
-        """The best `refine` candidates by the predictor's verdict, each as ADMM's start towards its aim (the lateral
-        target and speed it holds at T_p) and as it is (aim None: the safeguard's check only)."""
+        """The best `refine` candidates of both families by the predictor's verdict, each as ADMM's start towards its aim
+        (the lateral target and speed it holds at T_p) and as it is (aim None: the safeguard's check only)."""
         names, Delta, alpha, Z, aims = self.plans(s, obs, warm)
-        best = self.order(s, self.judge(s, obs, source, Delta, alpha, Z))[:self.refine]
+        judged = self.judge(s, obs, source, Delta, alpha, Z)
+        c_names, c_Delta, c_alpha, c_Z, c_aims, c_values = self.chased(s, obs, source)
+        names, aims = [*names, *c_names], [*aims, *c_aims]
+        Delta, alpha, Z = np.vstack([Delta, c_Delta]), np.vstack([alpha, c_alpha]), np.vstack([Z, c_Z])
+        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z)
         out = []
-        for rank, k in enumerate(best):
+        for rank, k in enumerate(self.order(s, judged)[:self.refine]):
             plan = admm.ADMMState(Delta[k, :s.T_p], alpha[k, :s.T_p], Z[k, :4 * s.T_p], np.zeros(4 * s.T_p))
             out += [Start(names[k], plan, replace(s, y_ref=float(aims[k][0]), v_ref=float(aims[k][1])), rank),
                     Start(f"{names[k]} as planned", plan, None, rank + 0.5)]
