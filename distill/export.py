@@ -21,14 +21,15 @@ def export_onnx(module, path: Path, t_obs=8, m=5):
     atomic_file(Path(path), write)
 
 
-def onnx_session(path: Path, advice: str):
-    """A single-threaded onnxruntime session on `path`; an unreadable or invalid file is one UserError naming it."""
+def onnx_session(path: Path, advice: str, model: bytes | None = None):
+    """A single-threaded onnxruntime session on `path` (or on `model`, a serialised part of its graph); an unreadable or
+    invalid file is one UserError naming it."""
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # batch-1 calls from a planner: threads cost more
     try:
-        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(model or str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own pybind types for unreadable or invalid graphs
         raise UserError(f"{path} is not a valid ONNX model ({str(e).splitlines()[0][:200]}); {advice}") from None
 

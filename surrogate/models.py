@@ -2,6 +2,8 @@
 from pathlib import Path
 
 import numpy as np
+import onnx
+from onnx.utils import Extractor
 
 from core.jobs import MissingModel, UserError, recover
 from distill.export import onnx_session
@@ -9,17 +11,26 @@ from distill.models import check_finite, probe_window
 
 
 class Surrogate:
-    """An onnxruntime session: `.jac(window)` -> J (B, SLOTS*2, T_obs*SLOTS*2) m/m float64, `.source` its teacher."""
+    """An onnxruntime session: `.jac(window)` -> J (B, SLOTS*2, T_obs*SLOTS*2) m/m float64, `.source` its teacher; a fused
+    export also `.phi(window)`, the source's next xy, each from its own half of the graph (`halves`)."""
 
-    def __init__(self, session, source, path):
+    def __init__(self, session, source, path, halves=None):
         self.session, self.source, self.path = session, source, path
         self.name = "surrogate"
         self.fused = "next" in [o.name for o in session.get_outputs()]
+        self.halves = halves or {"J": session}  # output name -> the session that computes it alone
 
     def jac(self, window):
         """Learned local Jacobian J (B, SLOTS*2, T_obs*SLOTS*2), float64, of window (B, T_obs, SLOTS, 2) metres."""
-        (J,) = self.session.run(["J"], {"window": np.asarray(window, dtype=np.float32)})
+        (J,) = self.halves["J"].run(["J"], {"window": np.asarray(window, dtype=np.float32)})
         return J.astype(np.float64)
+
+    def phi(self, window):
+        """The source predictor's next xy (B, SLOTS, 2) m of window (B, T_obs, SLOTS, 2) m, without J; fused models only."""
+        if not self.fused:
+            raise UserError(f"{self.path} was exported without the source's forward pass (surrogate fused=false)")
+        (nxt,) = self.halves["next"].run(["next"], {"window": np.asarray(window, dtype=np.float32)})
+        return nxt.astype(np.float64)
 
     def phi_jac(self, window):
         """(next xy (B, SLOTS, 2) m from the source predictor, J (B, SLOTS*2, T_obs*SLOTS*2)) in one call; fused models only."""
@@ -27,6 +38,14 @@ class Surrogate:
             raise UserError(f"{self.path} was exported without the source's forward pass (surrogate fused=false)")
         J, nxt = self.session.run(["J", "next"], {"window": np.asarray(window, dtype=np.float32)})
         return nxt.astype(np.float64), J.astype(np.float64)
+
+
+def halves(path, advice) -> dict:
+    """{output name: a session on the part of the fused graph at `path` that computes it}: onnxruntime runs every node of
+    a graph whatever outputs a call asks for, so values alone (a safeguard check, a rollout's recursion) would pay for J
+    and a batch of J for the source's forward pass."""
+    extract = Extractor(onnx.load(str(path))).extract_model
+    return {out: onnx_session(path, advice, extract(["window"], [out]).SerializeToString()) for out in ("next", "J")}
 
 
 def load(models_dir, T_obs, n_slots):
@@ -47,7 +66,7 @@ def load(models_dir, T_obs, n_slots):
     source = session.get_modelmeta().custom_metadata_map.get("source")
     if not source:
         raise UserError(f"{path} does not record the predictor it learned (ONNX metadata `source`); re-run `surrogate`")
-    surrogate = Surrogate(session, source, path)
+    surrogate = Surrogate(session, source, path, halves(path, f"{expected}; re-run `surrogate`") if "next" in outputs else None)
     window = probe_window(T_obs, M)
     check_finite(surrogate.phi_jac(window) if surrogate.fused else (surrogate.jac(window),), path, "re-run `surrogate`")
     return surrogate

@@ -1,0 +1,81 @@
+"""The surrogate source's fast path: a fused export's two halves (the source's forward pass, the learned J) give the
+fused graph's outputs, one J call for a whole rollout gives the per-window chain rule's values and derivative, a
+batch of plans gives each plan's values, and the memo of windows holds one step's (speed: `make bench`)."""
+import copy
+
+import numpy as np
+import pytest
+import torch
+from test_surrogate import smooth_student
+
+from bench.states import collect
+from core.rollout import SLOTS, T_OBS, ego_xy, rollout_jacobian
+from planner.gradients import Surrogate
+from surrogate import models
+from surrogate.export import export
+from surrogate.network import Fused, JacobianNet
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A random-weight JacobianNet fused with a smooth student as the source, exported and loaded as the planner does."""
+    folder = tmp_path_factory.mktemp("fused")
+    torch.manual_seed(1)
+    net = JacobianNet(T_OBS, SLOTS, 16, 1, "").eval()
+    export(Fused(copy.deepcopy(net), smooth_student()), folder / "surrogate.onnx", T_OBS, SLOTS, "student")
+    return models.load(folder, T_OBS, SLOTS - 1)
+
+
+@pytest.fixture(scope="module")
+def states():
+    """(history, ego plan) of planning states of a closed-loop two_lane run (analytic predictor), at their warm plans."""
+    return [(st.obs.history, ego_xy(st.warm.Z, 8)) for st in collect(scenarios=("two_lane",), per_scenario=6)
+            if st.warm is not None]
+
+
+def counted(surrogate, monkeypatch):
+    """{output: [batch sizes]} of the onnxruntime calls each half of `surrogate` gets from now on."""
+    calls = {"next": [], "J": []}
+    for out, session in surrogate.halves.items():
+        run = session.run
+        monkeypatch.setattr(session, "run", lambda names, feed, run=run, out=out: calls[out].append(len(feed["window"]))
+                            or run(names, feed), raising=False)
+    return calls
+
+
+def test_the_halves_give_the_fused_graphs_outputs(exported, states):
+    windows = np.stack([h for h, _ in states])
+    nxt, J = exported.phi_jac(windows)
+    assert np.array_equal(exported.phi(windows), nxt) and np.array_equal(exported.jac(windows), J)
+    assert np.array_equal(np.concatenate([exported.jac(w[None]) for w in windows]), J)  # a batch is its rows
+
+
+def test_one_j_call_per_rollout_gives_the_per_window_chain_rule(exported, states, monkeypatch):
+    source = Surrogate("surrogate", None, exported)
+    calls = counted(exported, monkeypatch)
+    for history, ego in states:
+        want = rollout_jacobian(exported.phi_jac, history, ego)  # the fused call per window, core.rollout's chain rule
+        before = {k: len(v) for k, v in calls.items()}
+        values, grads = source.jacobian(history, ego)
+        assert np.abs(grads[:, 1:]).max() > 1e-3  # the others respond to the ego plan
+        np.testing.assert_allclose(values, want[0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(grads, want[1], rtol=0, atol=1e-9)
+        assert calls["J"][before["J"]:] == [len(ego) - 1]  # every window after the observed one, at once
+        assert len(calls["next"]) - before["next"] <= len(ego)  # at most one forward pass per step of the plan
+        again = len(calls["next"])
+        np.testing.assert_array_equal(source.jacobian(history, ego)[1], grads)
+        assert len(calls["next"]) == again  # the same plan again: its windows are known, no forward pass
+
+
+def test_the_memo_keeps_one_step_and_batches_equal_single_plans(exported, states):
+    source, fresh = Surrogate("surrogate", None, exported), Surrogate("surrogate", None, exported)
+    (h1, ego), (h2, _) = states[0], states[1]
+    source.values(h1, ego[None])
+    source.values(h1, ego[None] + 0.2)
+    np.testing.assert_array_equal(source.values(h2, ego[None]), fresh.values(h2, ego[None]))
+    assert len(source.seen[1]) == len(ego)  # h2's windows only: a closed loop's memo does not grow step by step
+    plans = np.stack([ego, ego + 0.5, ego - 0.3])
+    batch = source.values(h1, plans)
+    single = np.stack([fresh.values(h1, p[None])[0] for p in plans])
+    np.testing.assert_allclose(batch, single, rtol=0, atol=1e-9)
+    assert np.abs(batch[1] - batch[0])[:, 1:].max() > 1e-2  # the others respond: the plans are not one
