@@ -3,8 +3,11 @@ beside the QP floor (the same ADMM with the safety linearisation frozen: no netw
 surrogate's and the teacher's solves are; cv and the student solve in one compiled call, below it) and the full-NLP baseline
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
 (cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
-(`<source>-ref`: mpc.admm.core=reference, numpy and OSQP) and at a longer horizon (`<source>-T16`); then a profile of where
-a step's time goes (the one-call ADMM solve, other compiled kernels, DAQP solves, Python); logged to MLflow (`bench`).
+(`<source>-ref`: mpc.admm.core=reference, numpy and OSQP), at a longer horizon (`<source>-T16`) and with the multi-start
+step (`<source>-courteous`: mpc=courteous); each row also per scenario family of the states (two_lane, three_lane, held-out
+dense worlds); then a profile of where a step's time goes (the one-call ADMM solve, other compiled kernels, DAQP solves,
+Python), the paper step's of step_time.profile and the multi-start step's of step_time.courteous, each also split in
+three (compiled solve, predictor calls, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
@@ -26,7 +29,7 @@ import numpy as np
 from omegaconf import DictConfig
 from threadpoolctl import threadpool_limits
 
-from bench.states import planning_states, settings, solver_step
+from bench.states import collect_kwargs, planning_states, settings, solver_step
 from core import validate
 from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, open_experiment
 from core.rollout import ego_xy
@@ -111,8 +114,9 @@ def ipopt_steps(srcs: dict, names) -> dict:
 
 
 def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> dict:
-    """{name: (ms (n_states,), iterations, fallbacks, J (n_states,), NaN where it fell back)}: the fastest of `repeats`
-    runs of each step, round-robin; srcs are ADMM's, others {name: (step, source)} another solver's."""
+    """{name: (ms (n_states,), iterations, fallbacks, J (n_states,), NaN where it fell back, scenario family
+    (n_states,))}: the fastest of `repeats` runs of each step, round-robin; srcs are ADMM's, others {name: (step,
+    source)} another solver's."""
     reference = srcs["teacher"]
     ms = {name: [] for name in [*srcs, "floor", *(others or {})]}
     iters = {name: [] for name in ms}
@@ -132,7 +136,8 @@ def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> 
             iters[name].append(result.iters)
             J[name].append(np.nan if result.fallback else result.J)
             falls[name] += bool(result.fallback)
-    return {name: (np.array(ms[name]), float(np.mean(iters[name])), falls[name], np.array(J[name])) for name in ms}
+    families = np.array([state.scenario for state in states])
+    return {name: (np.array(ms[name]), float(np.mean(iters[name])), falls[name], np.array(J[name]), families) for name in ms}
 
 
 def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix: str) -> dict:
@@ -153,7 +158,8 @@ def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix
             iters.append(result.iters)
             falls += bool(result.fallback)
             J.append(np.nan if result.fallback else result.J)
-        out[f"{name}{suffix}"] = (np.array(ms), float(np.mean(iters)), falls, np.array(J))
+        out[f"{name}{suffix}"] = (np.array(ms), float(np.mean(iters)), falls, np.array(J),
+                                  np.array([state.scenario for state in states]))
     return out
 
 
@@ -168,8 +174,8 @@ def variants(cfg: DictConfig, srcs: dict, states) -> dict:
     names = [n for n in h.sources if n in srcs]
     if names:
         overrides, path = (f"paper.T_p={h.T_p}",), Path(cfg.states.path)
-        long = planning_states(path.with_name(f"{path.stem}_T{h.T_p}{path.suffix}"), per_scenario=cfg.states.per_scenario,
-                               gradients=cfg.states.gradients, seed=cfg.states.seed, overrides=overrides)
+        long = planning_states(path.with_name(f"{path.stem}_T{h.T_p}{path.suffix}"), **collect_kwargs(cfg),
+                               overrides=overrides)
         out.update(steps_with(srcs, names, long, overrides, st.repeats, f"-T{h.T_p}"))
     return out
 
@@ -227,6 +233,20 @@ def profile(step, src, s_of, states) -> tuple[dict, dict]:
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 
+COMPILED = ("ADMM solve, one compiled call (numba + DAQP)", "DAQP solves called from Python", "compiled kernels (numba)",
+            "daqp", "osqp")  # the parts that are solver code (a compiled predictor's rollout runs inside them)
+PREDICTOR = ("onnxruntime", "torch", "distill/", "surrogate/")  # the parts (or their prefixes) that are a predictor's own
+
+
+def split(ms: dict) -> dict:
+    """A profile's own time per part (ms per step) in three: the compiled solve (numba, DAQP, OSQP; cv's and the
+    student's rollouts run inside it), predictor calls (onnxruntime, torch, the predictors' Python) and the rest, Python."""
+    out = dict.fromkeys(("compiled solve", "predictor calls", "Python"), 0.0)
+    for k, v in ms.items():
+        out["compiled solve" if k in COMPILED else "predictor calls" if k.startswith(PREDICTOR) else "Python"] += v
+    return out
+
+
 def profile_key(source: str, part_name: str) -> str:
     """The MLflow metric name of a profile entry: profile_<source>_<part>, characters MLflow refuses replaced by _."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"profile_{source}_{part_name}")
@@ -238,6 +258,7 @@ def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
     lines = [f"profile of {name}'s step (cProfile, {total:.1f} ms per step under the profiler; own time per part):"]
     lines += [f"  {k:>32} {v:8.2f} ms {v / total:6.1%}" for k, v in list(ms.items())[:top]]
     lines += [f"  {k}: {v:.1f} per step" for k, v in calls.items()]
+    lines.append("  split: " + ", ".join(f"{k} {v:.1f} ms ({v / total:.0%})" for k, v in split(ms).items()))
     return "\n".join(lines)
 
 
@@ -245,9 +266,12 @@ def summary(timings: dict, st: DictConfig) -> dict:
     """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_iters_mean, <source>_fallbacks and the ratios of
     st.ratios and st.ipopt (cfg.step_time)."""
     out = {}
-    for name, (ms, iters, falls, _) in timings.items():
+    for name, (ms, iters, falls, _, families) in timings.items():
         out.update({f"{name}_ms_median": float(np.median(ms)), f"{name}_ms_p95": float(np.percentile(ms, 95)),
                     f"{name}_iters_mean": iters, f"{name}_fallbacks": float(falls)})
+        for family in np.unique(families):  # scenario families apart: dense states plan against more cars at once
+            of = ms[families == family]
+            out.update({f"{name}_ms_median_{family}": float(np.median(of)), f"{name}_ms_p95_{family}": float(np.percentile(of, 95))})
     for a, b in st.ratios:
         if a in timings and b in timings:
             out[f"ratio_{a}_{b}"] = out[f"{a}_ms_median"] / out[f"{b}_ms_median"]
@@ -264,12 +288,17 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
     """The printed result: one line per source (and the floor), then the ratios of st.ratios and st.ipopt."""
     lines = [f"{len(states)} planning states ({', '.join(sorted({state.scenario for state in states}))}), one thread, "
              f"fastest of {st.repeats}",
-             f"{'source':>14} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
+             f"{'source':>19} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
-        base = re.sub(r"-(ref|T\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref and -T<T_p> rows
+        base = re.sub(r"-(ref|courteous|T\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref, ... rows
         pred = srcs[base].predictor.name if base in srcs else "frozen"
-        lines.append(f"{name:>14} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
+        lines.append(f"{name:>19} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
+    families = sorted({f for *_, fams in timings.values() for f in fams})
+    lines.append(f"{'per family':>19} " + " ".join(f"{f + ' median / p95 ms':>24}" for f in families))
+    for name in timings:
+        lines.append(f"{name:>19} " + " ".join(f"{metrics[f'{name}_ms_median_{f}']:>13.1f} / {metrics[f'{name}_ms_p95_{f}']:<8.1f}"
+                                               if f"{name}_ms_median_{f}" in metrics else f"{'-':>24}" for f in families))
     for a, b in st.ratios:
         key = f"ratio_{a}_{b}"
         lines.append(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
@@ -301,8 +330,7 @@ def run(cfg: DictConfig) -> dict:
     validate.check(cfg, "bench")
     open_experiment("bench")  # an unusable store fails now, not after the timing
     with single_threaded(cfg):
-        states = planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario, gradients=cfg.states.gradients,
-                                 seed=cfg.states.seed)
+        states = planning_states(cfg.states.path, **collect_kwargs(cfg))
         srcs = sources(cfg.models_dir)
         others = ipopt_steps(srcs, cfg.step_time.ipopt)
         # warm-up: first calls pay for imports, loading the compiled kernels from numba's cache, allocations,
@@ -318,11 +346,14 @@ def run(cfg: DictConfig) -> dict:
         timings.update(variants(cfg, srcs, states))
         profiles = {name: profile(solver_step(), srcs[name], settings, states) for name in cfg.step_time.profile
                     if name in srcs}
+        courteous = lambda scenario: settings(scenario, ("mpc=courteous",))  # the multi-start step: where its time goes
+        profiles.update({f"{name}-courteous": profile(solver_step(), srcs[name], courteous, states)
+                         for name in cfg.step_time.courteous if name in srcs})
     metrics = {**summary(timings, cfg.step_time), **first}
     log.info("\n%s", table(timings, srcs, metrics, states, cfg.step_time))
     for name, (ms, calls) in profiles.items():
         log.info("\n%s", profile_table(name, ms, calls))
-        metrics.update({profile_key(name, k): v for k, v in {**ms, **calls}.items()})
+        metrics.update({profile_key(name, k): v for k, v in {**ms, **calls, **split(ms)}.items()})
     log_bench("step_time", cfg, srcs, len(states), metrics)
     return metrics
 

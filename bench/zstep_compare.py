@@ -13,7 +13,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from bench.states import planning_states, settings, solver_step
+from bench.states import collect_kwargs, planning_states, settings, solver_step
 from bench.step_time import log_bench, single_threaded, sources
 from core.jobs import CONF_DIR, console, guarded, open_experiment
 from core.rollout import b_i, ego_xy
@@ -103,8 +103,7 @@ def run(cfg: DictConfig) -> dict:
     open_experiment("bench")  # and if the store is unusable
     only = list(cfg.zstep_compare.sources)
     with single_threaded(cfg):
-        states = subset(planning_states(cfg.states.path, per_scenario=cfg.states.per_scenario,
-                                        gradients=cfg.states.gradients, seed=cfg.states.seed), cfg.zstep_compare.per_scenario)
+        states = subset(planning_states(cfg.states.path, **collect_kwargs(cfg)), cfg.zstep_compare.per_scenario)
         srcs = {n: s for n, s in sources(cfg.models_dir).items() if not only or n in only}
         for src in srcs.values():  # warm-up: first calls pay for imports and allocations (PyGranso's import is done)
             step(states[0], src, "sqp")
