@@ -23,6 +23,7 @@ from planner import admm
 from planner.mpc import Observation, Settings, costs, lane_plan, planned, simulate, start_point
 
 NONNEG = Real(0)
+B_STOP, STOP_MARGIN = 2.5, 2.0  # m/s^2, m: a candidate must be able to stop this margin before its lane's end at this braking
 
 
 class Start(NamedTuple):
@@ -228,8 +229,8 @@ def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x:
 
 class Chase:
     """K closed-loop candidates, each chasing one gap of the target lane as the predictor moves its cars: the ego's
-    speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop 2 m before
-    the lane's end at 2.5 m/s^2; within `align` m of the middle it leans to lean_y (m) to ask for room; once the
+    speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop STOP_MARGIN
+    before the lane's end at B_STOP; within `align` m of the middle it leans to lean_y (m) to ask for room; once the
     predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target lane, and there follows
     the nearest car ahead by IDM. The predictor's rollout calls it once a step (Source.react)."""
 
@@ -257,7 +258,7 @@ class Chase:
         v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
         middle = 0.5 * (x_front + x_back)
         room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
-        stop = np.sqrt(5.0 * np.maximum(0.0, self.lane_end - 2.0 - z[:, 0]))
+        stop = np.sqrt(2.0 * B_STOP * np.maximum(0.0, self.lane_end - STOP_MARGIN - z[:, 0]))
         a = (np.minimum(v_gap + (middle - z[:, 0]) / self.tau_x, stop) - z[:, 3]) / self.tau
         y_t = np.where(room >= self.clearance, s.y_ref,
                        np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
@@ -286,12 +287,15 @@ def gaps(s: Settings, history) -> list:
 
 class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
-    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; horizon + 1: none) and its cost J over T_p."""
+    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; horizon + 1: none), its
+    cost J over T_p, and how far (m) it runs out of road: past the point from which, not yet merged, it could still
+    stop STOP_MARGIN before its lane's end at B_STOP (0: never)."""
 
     b_min: float
     braking: float
     merge: int
     J: float
+    overrun: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -379,36 +383,47 @@ class Interactive:
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
         in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
         merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, H + 1)
+        reach = ego[:, :, 0] + ego[:, :, 3] ** 2 / (2.0 * B_STOP) + STOP_MARGIN - self.lane_end
+        overrun = np.maximum(0.0, np.where(np.cumsum(in_target, axis=1) == 0, reach, 0.0).max(axis=1))
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
-        return [Judged(*x) for x in zip(b, braking, merge, J)]
+        return [Judged(*x) for x in zip(b, braking, merge, J, overrun)]
 
     @staticmethod
     def acceptable(s: Settings, j: Judged) -> bool:
-        """Whether a verdict finds its candidate safe (b_min >= 0) and courteous (braking <= b_courtesy)."""
-        return j.b_min >= 0.0 and (s.b_courtesy is None or j.braking <= s.b_courtesy)
+        """Whether a verdict finds its candidate safe (b_min >= 0, never out of road) and courteous (braking <=
+        b_courtesy)."""
+        return j.b_min >= 0.0 and j.overrun == 0.0 and (s.b_courtesy is None or j.braking <= s.b_courtesy)
 
     def order(self, s: Settings, judged: list[Judged]) -> list[int]:
         """Candidates best first: the acceptable ones by the earliest merge and the lowest J; the others after them, the
-        least unsafe first."""
+        least unsafe first, then the least out of road."""
         b_c = np.inf if s.b_courtesy is None else s.b_courtesy
         return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, judged[k].J) if self.acceptable(s, judged[k])
-                      else (1, -min(judged[k].b_min, 0.0), max(judged[k].braking - b_c, 0.0)))
+                      else (1, -min(judged[k].b_min, 0.0), judged[k].overrun, max(judged[k].braking - b_c, 0.0)))
 
-    def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
-        """The best `refine` candidates of both families by the predictor's verdict, each as ADMM's start towards its aim
-        (the lateral target and speed it holds at T_p) and as it is (aim None: the safeguard's check only)."""
+    def ranked(self, s: Settings, obs: Observation, warm, source):
+        """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, H), alpha (K, H),
+        Z (K, 4H), aims [(y m, v m/s)], verdicts), each in that order."""
         names, Delta, alpha, Z, aims = self.plans(s, obs, warm)
         judged = self.judge(s, obs, source, Delta, alpha, Z)
         c_names, c_Delta, c_alpha, c_Z, c_aims, c_values = self.chased(s, obs, source)
+        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z)
         names, aims = [*names, *c_names], [*aims, *c_aims]
         Delta, alpha, Z = np.vstack([Delta, c_Delta]), np.vstack([alpha, c_alpha]), np.vstack([Z, c_Z])
-        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z)
+        k = self.order(s, judged)
+        return [names[i] for i in k], Delta[k], alpha[k], Z[k], [aims[i] for i in k], [judged[i] for i in k]
+
+    def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
+        """The best `refine` candidates of both families (ranked), each as ADMM's start towards its aim (the lateral
+        target and speed it holds at T_p) and as it is (aim None: the safeguard's check only)."""
+        names, Delta, alpha, Z, aims, _ = self.ranked(s, obs, warm, source)
         out = []
-        for rank, k in enumerate(self.order(s, judged)[:self.refine]):
-            plan = admm.ADMMState(Delta[k, :s.T_p], alpha[k, :s.T_p], Z[k, :4 * s.T_p], np.zeros(4 * s.T_p))
-            out += [Start(names[k], plan, replace(s, y_ref=float(aims[k][0]), v_ref=float(aims[k][1])), rank),
-                    Start(f"{names[k]} as planned", plan, None, rank + 0.5)]
+        for rank in range(min(self.refine, len(names))):
+            plan = admm.ADMMState(Delta[rank, :s.T_p], alpha[rank, :s.T_p], Z[rank, :4 * s.T_p], np.zeros(4 * s.T_p))
+            y, v = aims[rank]
+            out += [Start(names[rank], plan, replace(s, y_ref=float(y), v_ref=float(v)), rank),
+                    Start(f"{names[rank]} as planned", plan, None, rank + 0.5)]
         return out
 
     def choose(self, s: Settings, obs: Observation, plans):

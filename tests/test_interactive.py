@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from planner import mpc, step
+from planner.gradients import Source
 from planner.setup import make
 from planner.strategy import Interactive, Judged, paces, track
 
@@ -11,30 +12,26 @@ DT = 0.2
 
 
 class Scripted:
-    """A predictor written by hand: the cars keep their observed speed, except the one behind the ego (slot 2), which
-    brakes at `brake` m/s^2 from the first step the ego's plan leans deeper than `trigger` m (0: it never reacts)."""
+    """A predictor written by hand: every car keeps the velocity of its last two steps, except the one behind the ego
+    (slot 2), which brakes at `brake` m/s^2 (down to a stop) from the step after the ego's centre is seen deeper than
+    `trigger` m (0: it never reacts)."""
 
     name = "scripted"
 
     def __init__(self, brake=0.0, trigger=1.0):
         self.brake, self.trigger = brake, trigger
 
-    def values(self, history, egos):
-        v = (history[-1] - history[-2]) / DT  # (SLOTS, 2)
-        out = []
-        for ego in np.asarray(egos):
-            H = len(ego)
-            xy = history[-1] + np.arange(1, H + 1)[:, None, None] * DT * v  # (H, SLOTS, 2)
-            leaned = np.flatnonzero(ego[:, 1] > self.trigger)
-            if self.brake and len(leaned):
-                k0 = leaned[0]
-                t = np.clip(np.arange(1, H + 1) - k0, 0, None) * DT  # time since it began to brake (s)
-                vb = v[2, 0]
-                stop = vb / self.brake
-                xy[:, 2, 0] -= 0.5 * self.brake * np.minimum(t, stop) ** 2 + np.maximum(t - stop, 0.0) * 0.0
-            xy[:, 0] = ego
-            out.append(xy)
-        return np.array(out)
+    def phi(self, window):
+        nxt = 2.0 * window[:, -1] - window[:, -2]
+        v = (window[:, -1, 2, 0] - window[:, -2, 2, 0]) / DT
+        deep = (window[:, -1, 0, 1] > self.trigger) & (self.brake > 0)
+        nxt[:, 2, 0] -= np.where(deep, np.minimum(self.brake * DT, v) * DT, 0.0)
+        return nxt
+
+
+def scripted(brake=0.0, trigger=1.0):
+    """Scripted as a gradient source: its values by the predictor's own recursion, open or closed loop."""
+    return Source("scripted", Scripted(brake, trigger))
 
 
 def world(gap_ahead, gap_behind, v=5.0):
@@ -50,10 +47,8 @@ def world(gap_ahead, gap_behind, v=5.0):
 
 def best(s, obs, source):
     """The name and verdict of the candidate the strategy ranks first."""
-    names, Delta, alpha, Z, _ = s.strategy.plans(s, obs, None)
-    judged = s.strategy.judge(s, obs, source, Delta, alpha, Z)
-    k = s.strategy.order(s, judged)[0]
-    return names[k], judged[k]
+    names, *_, judged = s.strategy.ranked(s, obs, None, source)
+    return names[0], judged[0]
 
 
 def test_the_paces_a_candidate_may_follow_are_those_observed_and_the_gaps_between_target_lane_cars():
@@ -79,19 +74,49 @@ def test_a_gap_targeting_candidate_closes_on_the_gap_s_middle():
 
 def test_a_predictor_that_sees_the_driver_behind_yield_merges_where_constant_velocity_waits():
     s, obs = world(6.0, 3.0)  # 9 m between the two: the shape needs 10.1 m, so nothing fits unless the car behind yields
-    name, verdict = best(s, obs, Scripted())  # constant velocity: nobody reacts
-    assert not name.startswith("merge") and verdict.merge == s.strategy.horizon + 1 and verdict.b_min >= 0
-    name, verdict = best(s, obs, Scripted(brake=1.5))  # it yields, gently, to a lean
-    assert name.startswith("merge after") and verdict.merge <= s.strategy.horizon and verdict.braking <= s.b_courtesy
-    assert verdict.b_min >= 0.0
+    name, verdict = best(s, obs, scripted())  # constant velocity: nobody reacts
+    assert verdict.merge == s.strategy.horizon + 1 and s.strategy.acceptable(s, verdict)
+    name, verdict = best(s, obs, scripted(brake=1.5))  # it yields, gently, to a lean
+    assert verdict.merge <= s.strategy.horizon and s.strategy.acceptable(s, verdict)
+
+
+def test_a_chasing_candidate_enters_once_the_predicted_clearance_opens():
+    s, obs = world(6.0, 3.0)
+    H = s.strategy.horizon
+    for source, merges in ((scripted(), False), (scripted(brake=1.5), True)):
+        names, Delta, alpha, Z, _, values = s.strategy.chased(s, obs, source)
+        judged = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
+        beside = [k for k, n in enumerate(names) if n.startswith("chase gap -3..+6 m")]
+        assert len(beside) == len(s.strategy.clearance)  # one per clearance, all chasing the gap the ego is beside
+        good = [k for k in beside if judged[k].merge <= H and s.strategy.acceptable(s, judged[k])]
+        assert bool(good) == merges  # at constant velocity the gap never opens: whoever enters it breaks the shape
+        for k in good:  # it steered in only after the car behind had dropped back by the clearance asked for
+            ego, back = Z[k].reshape(H, 4), values[k, :, 2, 0]
+            turned = np.flatnonzero(ego[:, 1] > s.strategy.chase_lean[0] + 0.05)[0]
+            room = ego[turned - 1, 0] - back[turned - 1] - s.road.car_length
+            assert room >= s.strategy.clearance[beside.index(k)] - 1e-9
 
 
 def test_a_predictor_that_sees_the_cut_in_force_the_driver_behind_refuses_the_gap_constant_velocity_takes():
     s, obs = world(5.5, 5.5)  # 11 m: room enough at constant velocity
-    name, verdict = best(s, obs, Scripted())
-    assert name.startswith("merge after 0") and verdict.braking == pytest.approx(0.0, abs=1e-9)
-    name, verdict = best(s, obs, Scripted(brake=6.0, trigger=2.0))  # entering its lane makes it brake at 6 m/s^2
-    assert not name.startswith("merge") and verdict.braking <= s.b_courtesy
+    name, verdict = best(s, obs, scripted())
+    assert verdict.merge <= s.strategy.horizon and verdict.braking == pytest.approx(0.0, abs=1e-9)
+    name, verdict = best(s, obs, scripted(brake=6.0, trigger=2.0))  # entering its lane makes it brake at 6 m/s^2
+    assert verdict.merge == s.strategy.horizon + 1 and verdict.braking <= s.b_courtesy
+
+
+def test_a_candidate_that_cannot_stop_before_the_lane_s_end_is_refused():
+    s, obs = world(6.0, 3.0)
+    end = s.strategy.lane_end
+    H = s.strategy.horizon
+    Delta, alpha, Z = track(s, obs.z0 + np.array([end - 30.0, 0, 0, 0]), np.zeros((2, H)),
+                            np.array([np.full(H, 5.0), np.zeros(H)]), 1.0)
+    values = scripted().values(obs.history, Z.reshape(2, H, 4)[:, :, :2])  # the others far behind, at constant velocity
+    held, stopped = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
+    ego = Z[0].reshape(H, 4)
+    reach = ego[:, 0] + ego[:, 3] ** 2 / 5.0 + 2.0 - end  # 2.5 m/s^2 and a 2 m margin, as the strategy's constants
+    assert held.overrun == pytest.approx(reach.max()) and not s.strategy.acceptable(s, held)
+    assert stopped.overrun == 0.0 and s.strategy.acceptable(s, stopped)
 
 
 def test_the_order_puts_safe_and_courteous_first_then_the_earliest_merge_then_J():
