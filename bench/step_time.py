@@ -11,8 +11,9 @@ three (compiled solve, predictor calls, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
-Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair (the -ref
-and -T16 rows are timed after them, source by source). The cost gap
+Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair (the -ref,
+-courteous and -T16 rows are timed after them, round-robin among themselves); repeats pass over all the states again.
+The cost gap
 is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
 own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out below IPOPT's).
 """
@@ -113,54 +114,44 @@ def ipopt_steps(srcs: dict, names) -> dict:
     return {f"ipopt-{name}": (step, srcs[name]) for name in names if name in srcs}
 
 
-def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> dict:
+def fastest(runs: dict, states, repeats: int) -> dict:
     """{name: (ms (n_states,), iterations, fallbacks, J (n_states,), NaN where it fell back, scenario family
-    (n_states,))}: the fastest of `repeats` runs of each step, round-robin; srcs are ADMM's, others {name: (step,
-    source)} another solver's."""
-    reference = srcs["teacher"]
-    ms = {name: [] for name in [*srcs, "floor", *(others or {})]}
-    iters = {name: [] for name in ms}
-    J = {name: [] for name in ms}
-    falls = {name: 0 for name in ms}
-    for state in states:
-        s = settings(state.scenario)
-        per_state = {name: (solver_step(), src) for name, src in srcs.items()}
-        per_state.update({"floor": (solver_step(), freeze(reference, s, state)), **(others or {})})
-        for name, (step, src) in per_state.items():
-            best = np.inf
-            for _ in range(repeats):
+    (n_states,))} of runs {name: run(i, state) -> StepResult}: the fastest of `repeats` passes over all the states, each
+    pass round-robin over the runs state by state, so a busy machine slows them alike and no run meets a state it has
+    just planned (a source's memo of the step's windows, the surrogate's, would make that repeat nearly free)."""
+    ms = {name: np.full(len(states), np.inf) for name in runs}
+    results = {name: [None] * len(states) for name in runs}
+    for _ in range(repeats):
+        for i, state in enumerate(states):
+            for name, run in runs.items():
                 t0 = time.perf_counter()
-                result = step(s, state.obs, src, state.warm)
-                best = min(best, 1e3 * (time.perf_counter() - t0))
-            ms[name].append(best)
-            iters[name].append(result.iters)
-            J[name].append(np.nan if result.fallback else result.J)
-            falls[name] += bool(result.fallback)
+                results[name][i] = run(i, state)
+                ms[name][i] = min(ms[name][i], 1e3 * (time.perf_counter() - t0))
     families = np.array([state.scenario for state in states])
-    return {name: (np.array(ms[name]), float(np.mean(iters[name])), falls[name], np.array(J[name]), families) for name in ms}
+    return {name: (ms[name], float(np.mean([r.iters for r in res])), sum(bool(r.fallback) for r in res),
+                   np.array([np.nan if r.fallback else r.J for r in res]), families) for name, res in results.items()}
+
+
+def time_steps(srcs: dict, states, repeats: int, others: dict | None = None) -> dict:
+    """fastest's entries for srcs {name: source} (ADMM's step), the QP floor and others {name: (step, source)} (another
+    solver's)."""
+    floors = [freeze(srcs["teacher"], settings(state.scenario), state) for state in states]
+    step = lambda state, src, solver=solver_step(): solver(settings(state.scenario), state.obs, src, state.warm)
+    runs = {name: lambda i, state, src=src: step(state, src) for name, src in srcs.items()}
+    runs["floor"] = lambda i, state: step(state, floors[i])
+    runs.update({name: lambda i, state, src=src, solver=solver: step(state, src, solver)
+                 for name, (solver, src) in (others or {}).items()})
+    return fastest(runs, states, repeats)
 
 
 def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix: str) -> dict:
-    """time_steps' entries {<name><suffix>: ...} for the sources `names` with the planner overrides `overrides` (after
+    """fastest's entries {<name><suffix>: ...} for the sources `names` with the planner overrides `overrides` (after
     one warm-up step each: a new set-up pays on its first call)."""
-    s_of = lambda scenario: settings(scenario, overrides)
-    out = {}
-    for name in names:
-        solver_step()(s_of(states[0].scenario), states[0].obs, srcs[name], states[0].warm)
-        ms, iters, falls, J = [], [], 0, []
-        for state in states:
-            best = np.inf
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                result = solver_step()(s_of(state.scenario), state.obs, srcs[name], state.warm)
-                best = min(best, 1e3 * (time.perf_counter() - t0))
-            ms.append(best)
-            iters.append(result.iters)
-            falls += bool(result.fallback)
-            J.append(np.nan if result.fallback else result.J)
-        out[f"{name}{suffix}"] = (np.array(ms), float(np.mean(iters)), falls, np.array(J),
-                                  np.array([state.scenario for state in states]))
-    return out
+    runs = {f"{name}{suffix}": lambda i, state, src=srcs[name]: solver_step()(settings(state.scenario, overrides), state.obs,
+                                                                               src, state.warm) for name in names}
+    for run in runs.values():
+        run(0, states[0])
+    return fastest(runs, states, repeats)
 
 
 def variants(cfg: DictConfig, srcs: dict, states) -> dict:
@@ -263,11 +254,13 @@ def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
 
 
 def summary(timings: dict, st: DictConfig) -> dict:
-    """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_iters_mean, <source>_fallbacks and the ratios of
-    st.ratios and st.ipopt (cfg.step_time)."""
+    """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_ms_p99 (the 200 ms control period's test; on a few
+    dozen states, near their slowest), the first two also per scenario family (<source>_ms_median_<family>),
+    <source>_iters_mean, <source>_fallbacks and the ratios of st.ratios and st.ipopt (cfg.step_time)."""
     out = {}
     for name, (ms, iters, falls, _, families) in timings.items():
         out.update({f"{name}_ms_median": float(np.median(ms)), f"{name}_ms_p95": float(np.percentile(ms, 95)),
+                    f"{name}_ms_p99": float(np.percentile(ms, 99)),
                     f"{name}_iters_mean": iters, f"{name}_fallbacks": float(falls)})
         for family in np.unique(families):  # scenario families apart: dense states plan against more cars at once
             of = ms[families == family]
@@ -288,11 +281,11 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
     """The printed result: one line per source (and the floor), then the ratios of st.ratios and st.ipopt."""
     lines = [f"{len(states)} planning states ({', '.join(sorted({state.scenario for state in states}))}), one thread, "
              f"fastest of {st.repeats}",
-             f"{'source':>19} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
+             f"{'source':>19} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'p99 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
         base = re.sub(r"-(ref|courteous|T\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref, ... rows
         pred = srcs[base].predictor.name if base in srcs else "frozen"
-        lines.append(f"{name:>19} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} "
+        lines.append(f"{name:>19} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} {metrics[f'{name}_ms_p99']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
     families = sorted({f for *_, fams in timings.values() for f in fams})
     lines.append(f"{'per family':>19} " + " ".join(f"{f + ' median / p95 ms':>24}" for f in families))

@@ -1,6 +1,8 @@
 """The step-time bench's planning states and report: every scenario family has its states (dense from several held-out
-worlds), a states file collected otherwise is collected again, medians per family are each family's own, and the
-profile's three-way split adds up to its parts."""
+worlds), a states file collected otherwise is collected again, medians per family are each family's own, the profile's
+three-way split adds up to its parts, and a repeat meets every other state before the same one again."""
+from types import SimpleNamespace
+
 import numpy as np
 from omegaconf import OmegaConf
 
@@ -41,7 +43,7 @@ def test_medians_per_family_are_each_familys_own():
     st = OmegaConf.create({"ratios": [], "ipopt": []})
     out = step_time.summary({"cv": (ms, 5.0, 0, np.zeros(5), families)}, st)
     assert out["cv_ms_median"] == 3.0 and out["cv_ms_median_two_lane"] == 2.0 and out["cv_ms_median_dense"] == 20.0
-    assert out["cv_ms_p95_dense"] == np.percentile([10.0, 30.0], 95)
+    assert out["cv_ms_p95_dense"] == np.percentile([10.0, 30.0], 95) and out["cv_ms_p99"] == np.percentile(ms, 99)
 
 
 def test_the_split_sorts_every_part_into_one_of_three():
@@ -50,3 +52,14 @@ def test_the_split_sorts_every_part_into_one_of_three():
     out = step_time.split(ms)
     assert out == {"compiled solve": 3.125, "predictor calls": 2.5, "Python": 1.25}
     assert "split: compiled solve 3.1 ms" in step_time.profile_table("cv-courteous", dict(sorted(ms.items())), {})
+
+
+def test_repeats_pass_over_every_state_before_meeting_one_again(monkeypatch):
+    """A source that remembers the step it just planned (the surrogate's memo of windows) gains nothing from a repeat."""
+    seen, clock = [], iter(np.cumsum([0.0, 0.005, 0.0, 0.005] * 3 + [0.0, 0.002, 0.0, 0.002] * 3))
+    monkeypatch.setattr(step_time.time, "perf_counter", lambda: next(clock))
+    run = lambda name: lambda i, state: seen.append((name, i)) or SimpleNamespace(iters=i, fallback="", J=float(i))
+    out = step_time.fastest({"a": run("a"), "b": run("b")}, [SimpleNamespace(scenario="two_lane")] * 3, repeats=2)
+    assert seen == [(n, i) for i in range(3) for n in "ab"] * 2
+    np.testing.assert_allclose(out["a"][0], [2.0] * 3)  # ms, the faster pass
+    assert out["b"][1] == 1.0 and list(out["b"][3]) == [0.0, 1.0, 2.0]
