@@ -1,7 +1,7 @@
 """The surrogate source's fast path: a fused export's two halves (the source's forward pass, the learned J) give the
 fused graph's outputs, one J call for a whole rollout gives the per-window chain rule's values and derivative, a
 batch of plans gives each plan's values, the memo of windows holds one step's, and the teacher's compiled forward pass
-is the torch network's in float64 (speed: `make bench`)."""
+is the torch network's (speed: `make bench`)."""
 import copy
 
 import numpy as np
@@ -85,10 +85,10 @@ def test_the_memo_keeps_one_step_and_batches_equal_single_plans(exported, states
     assert np.abs(batch[1] - batch[0])[:, 1:].max() > 1e-2  # the others respond: the plans are not one
 
 
-def test_the_compiled_teacher_is_the_torch_network_in_float64(exported, states):
+def test_the_compiled_teacher_is_the_torch_network_to_float32_rounding(exported, states):
     """A small random-weight SocialTeacher whose decoder responds (its last layer starts at zero, constant velocity)."""
     torch.manual_seed(2)
-    net = instantiate(compose_cfg("distill", ["model=teacher"]).model.net, hidden=8, pool=8, decoder=[16, 16]).double()
+    net = instantiate(compose_cfg("distill", ["model=teacher"]).model.net, hidden=8, pool=8, decoder=[16, 16])
     torch.nn.init.normal_(net.decoder[-1].weight, 0.0, 0.5)
     teacher = TorchPredictor("teacher", net.eval())
     phi = kernels.compiled_phi(teacher)
@@ -96,8 +96,8 @@ def test_the_compiled_teacher_is_the_torch_network_in_float64(exported, states):
     windows = np.stack([h for h, _ in states])
     want = teacher.phi(windows)
     assert np.abs(want - (2 * windows[:, -1] - windows[:, -2]))[:, 1:].max() > 1e-3  # the others are not at cv
-    np.testing.assert_allclose(phi(windows), want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(phi(windows), want, rtol=0, atol=1e-5)  # float32 at tens of metres: ~4e-6 m apart
     source = Surrogate("surrogate", teacher, exported)  # the teacher's values, the export's J
     history, ego = states[0]
     np.testing.assert_allclose(source.values(history, ego[None]), rollout(teacher.phi, history[None], ego[None]),
-                               rtol=0, atol=1e-9)
+                               rtol=0, atol=1e-5)
