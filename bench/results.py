@@ -46,7 +46,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from bench import breakdown
-from bench.results_plan import build_plan, swept, with_options
+from bench.results_plan import build_plan, dense_sources, swept, with_options
 from bench.results_plots import accuracy_plot, bar_plot, braking_plot, cooperation_plot
 from bench.results_tables import (
     GRADIENT_ROWS,
@@ -112,7 +112,7 @@ class Report:
         """The headline's rows: the dense batches, then the ceiling's searches on the same worlds (method '')."""
         worlds = read_ceiling(self.work, "dense")
         run = self.out["ceiling dense"]
-        return {**self.batch_rows("dense", with_options(self.p.sources, self.p.mpc_options)),
+        return {**self.batch_rows("dense", dense_sources(self.p)),
                 **{(name, ""): ceiling_row(run, worlds, k, self.cfg.bootstrap.resamples, self.stream("dense", name))
                    for k, name in SEARCHES.items() if f"{k}_courteous" in run}}
 
@@ -214,6 +214,7 @@ def cooperation(r: Report) -> list[dict]:
                 for m in methods(folder):
                     hits = [e["courteous"] for e in read_episodes(folder, m) if int(e["seed"]) in seeds]
                     rates.setdefault(f"{row} {m.upper()}", {})[c] = rate(hits)
+    rates = {name: v for name, v in rates.items() if len(v) == len(levels)}  # the oracle row drives the headline alone
     cooperation_plot(rates, levels, r.dest / "cooperation.png")
     return [{"worlds": n, "planner_seed": r.cfg.planner_seed, "training": first,
              "levels": ", ".join(levels), "table": "\n".join(sweep_table(rates, levels))}]

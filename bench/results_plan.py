@@ -17,7 +17,8 @@ from planner.gradients import available, reads_models
 log = logging.getLogger(__name__)
 TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
 SWEEP = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
-         "results_preset.cooperation_episodes": validate.Int(1)}  # the cooperation sweep's keys
+         "results_preset.cooperation_episodes": validate.Int(1), "results_preset.oracle_episodes": validate.Int(0)}
+ORACLE = ["mpc=interactive", "method=admm", "predictor=oracle"]  # the dense row whose predictor is the world itself
 
 
 class Plan:
@@ -107,6 +108,9 @@ def build_plan(cfg, work: Path):
     if "mixed" in p.cooperation and p.cooperation_episodes > p.dense_episodes:
         raise UserError(f"results_preset.cooperation_episodes={p.cooperation_episodes}: the sweep's mixed level reads the "
                         f"headline's first worlds, and it has {p.dense_episodes} (results_preset.dense_episodes)")
+    if p.oracle_episodes > p.dense_episodes:
+        raise UserError(f"results_preset.oracle_episodes={p.oracle_episodes}: the oracle row drives the headline's first "
+                        f"worlds, and it has {p.dense_episodes} (results_preset.dense_episodes)")
     data_dir, plan, batches = work / "data", Plan(), {}
     dataset_dir = data_dir / p.dataset
     plan.add("make-dataset", data_cli.run, job_config("make_dataset", [f"dataset={p.dataset}", f"out_dir={data_dir}",
@@ -127,7 +131,8 @@ def build_plan(cfg, work: Path):
     runs = [("dense", s, p.dense_episodes, extra, every) for extra in options for s in p.sources] + \
         [("random", s, p.episodes, [], every) for s in p.sources] + \
         [(sc, s, p.table2_episodes, extra, every) for sc in p.scenarios for extra in options for s in p.table2_sources] + \
-        [(swept(c), s, p.cooperation_episodes, extra, first) for c in fresh_levels(p) for extra in options for s in p.sources]
+        [(swept(c), s, p.cooperation_episodes, extra, first) for c in fresh_levels(p) for extra in options for s in p.sources] + \
+        [("dense", "oracle", p.oracle_episodes, ORACLE, first)] * (p.oracle_episodes > 0)
     starts = {}  # {batches' scenario key: their per-step CSVs' templates}, the ceiling's recorded starts
     for key, source, episodes, extra, trainings in runs:
         scenario, *level = key.split(" cooperation=")
@@ -196,3 +201,8 @@ def mpc_overrides(options) -> list[list[str]]:
 def with_options(sources, options) -> list[str]:
     """Row names of sources with the paper's step, then with each conf/mpc/ option ("student courteous")."""
     return [label(s, extra) for extra in mpc_overrides(options) for s in sources]
+
+
+def dense_sources(p) -> list[str]:
+    """Row names of the preset p's dense batches: with_options's, then the oracle's interactive step where it runs."""
+    return with_options(p.sources, p.mpc_options) + [label("oracle", ORACLE)] * (p.oracle_episodes > 0)

@@ -23,7 +23,7 @@ from planner import admm
 from planner.mpc import Observation, Settings, costs, lane_plan, planned, simulate, start_point
 
 NONNEG = Real(0)
-B_STOP, STOP_MARGIN = 2.5, 2.0  # m/s^2, m: a candidate must be able to stop this margin before its lane's end at this braking
+STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
 
 
 class Start(NamedTuple):
@@ -230,7 +230,7 @@ def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x:
 class Chase:
     """K closed-loop candidates, each chasing one gap of the target lane as the predictor moves its cars: the ego's
     speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop STOP_MARGIN
-    before the lane's end at B_STOP; within `align` m of the middle it leans to lean_y (m) to ask for room; once the
+    before the lane's end braking as hard as a_box allows; within `align` m of the middle it leans to lean_y (m) to ask for room; once the
     predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target lane, and there follows
     the nearest car ahead by IDM. The predictor's rollout calls it once a step (Source.react)."""
 
@@ -258,7 +258,7 @@ class Chase:
         v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
         middle = 0.5 * (x_front + x_back)
         room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
-        stop = np.sqrt(2.0 * B_STOP * np.maximum(0.0, self.lane_end - STOP_MARGIN - z[:, 0]))
+        stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - z[:, 0]))
         a = (np.minimum(v_gap + (middle - z[:, 0]) / self.tau_x, stop) - z[:, 3]) / self.tau
         y_t = np.where(room >= self.clearance, s.y_ref,
                        np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
@@ -289,7 +289,7 @@ class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
     imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; horizon + 1: none), its
     cost J over T_p, and how far (m) it runs out of road: past the point from which, not yet merged, it could still
-    stop STOP_MARGIN before its lane's end at B_STOP (0: never)."""
+    stop before its lane's end braking as hard as a_box allows (0: never)."""
 
     b_min: float
     braking: float
@@ -383,7 +383,7 @@ class Interactive:
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
         in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
         merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, H + 1)
-        reach = ego[:, :, 0] + ego[:, :, 3] ** 2 / (2.0 * B_STOP) + STOP_MARGIN - self.lane_end
+        reach = ego[:, :, 0] + ego[:, :, 3] ** 2 / (-2.0 * s.a_box[0]) - self.lane_end
         overrun = np.maximum(0.0, np.where(np.cumsum(in_target, axis=1) == 0, reach, 0.0).max(axis=1))
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]

@@ -109,12 +109,12 @@ def test_a_candidate_that_cannot_stop_before_the_lane_s_end_is_refused():
     s, obs = world(6.0, 3.0)
     end = s.strategy.lane_end
     H = s.strategy.horizon
-    Delta, alpha, Z = track(s, obs.z0 + np.array([end - 30.0, 0, 0, 0]), np.zeros((2, H)),
+    Delta, alpha, Z = track(s, obs.z0 + np.array([end - 28.0, 0, 0, 0]), np.zeros((2, H)),
                             np.array([np.full(H, 5.0), np.zeros(H)]), 1.0)
     values = scripted().values(obs.history, Z.reshape(2, H, 4)[:, :, :2])  # the others far behind, at constant velocity
     held, stopped = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
     ego = Z[0].reshape(H, 4)
-    reach = ego[:, 0] + ego[:, 3] ** 2 / 5.0 + 2.0 - end  # 2.5 m/s^2 and a 2 m margin, as the strategy's constants
+    reach = ego[:, 0] + ego[:, 3] ** 2 / (-2.0 * s.a_box[0]) - end  # braking as hard as it may
     assert held.overrun == pytest.approx(reach.max()) and not s.strategy.acceptable(s, held)
     assert stopped.overrun == 0.0 and s.strategy.acceptable(s, stopped)
 

@@ -47,3 +47,16 @@ def test_the_cooperation_sweep_runs_each_fresh_level_on_the_first_training_and_r
         tiny_plan(tmp_path, "results_preset.cooperation_episodes=3")
     with pytest.raises(UserError, match=r"results_preset.cooperation=\['polite'\]: must be"):
         tiny_plan(tmp_path, "results_preset.cooperation=[polite]")
+
+
+def test_the_oracle_row_drives_the_interactive_step_with_the_world_as_predictor_on_the_headline_s_first_worlds(tmp_path):
+    _, jobs, batches = tiny_plan(tmp_path)
+    job = jobs["planner dense oracle interactive"]
+    assert (job.gradients.name, job.predictor._target_, job.mpc.name, list(job.method)) == (
+        "oracle", "planner.gradients.WorldModel", "interactive", ["admm"])
+    assert (job.episodes, job.seed) == (1, 2000000)
+    assert ("dense", "oracle interactive", None) in batches
+    assert str(batches["dense", "oracle interactive", None] / "steps" / "admm_{seed}.csv") in jobs["ceiling dense"].starts
+    with pytest.raises(UserError, match=r"results_preset.oracle_episodes=3: the oracle row drives the headline's first "
+                                        r"worlds, and it has 2"):
+        tiny_plan(tmp_path, "results_preset.oracle_episodes=3")
