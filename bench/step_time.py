@@ -248,7 +248,7 @@ def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
     total = sum(ms.values())
     lines = [f"profile of {name}'s step (cProfile, {total:.1f} ms per step under the profiler; own time per part):"]
     lines += [f"  {k:>32} {v:8.2f} ms {v / total:6.1%}" for k, v in list(ms.items())[:top]]
-    lines += [f"  {k}: {v:.1f} per step" for k, v in calls.items()]
+    lines += [f"  {k}: {v:.1f} per step" for k, v in calls.items() if v]
     lines.append("  split: " + ", ".join(f"{k} {v:.1f} ms ({v / total:.0%})" for k, v in split(ms).items()))
     return "\n".join(lines)
 
