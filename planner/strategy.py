@@ -258,8 +258,9 @@ class Chase:
         v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
         middle = 0.5 * (x_front + x_back)
         room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
-        stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - z[:, 0]))
-        a = (np.minimum(v_gap + (middle - z[:, 0]) / self.tau_x, stop) - z[:, 3]) / self.tau
+        ahead = z[:, 0] + z[:, 3] * s.params.dt  # a step on: it brakes before it has passed the point
+        stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - ahead))
+        a = np.minimum((v_gap + (middle - z[:, 0]) / self.tau_x - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
         y_t = np.where(room >= self.clearance, s.y_ref,
                        np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
         target = np.abs(y[:, 1:] - s.y_ref) < s.road.lane_width / 2

@@ -37,8 +37,9 @@ def scripted(brake=0.0, trigger=1.0):
 def world(gap_ahead, gap_behind, v=5.0):
     """Settings of mpc=interactive on dense and an observation: the ego in its lane (y 0) at v m/s, a target-lane car
     gap_ahead m ahead and a stream behind it, gap_behind m then every 9.5 m, all at v (too close for the safety shape's
-    10.1 m: an ego that stopped would let the stream pass, but find no room in it); history at constant velocity."""
-    s = make("dense", ["gradients=cv", "mpc=interactive"])[2]
+    10.1 m: an ego that stopped would let the stream pass, but find no room in it); history at constant velocity. The
+    ego's lane ends 30 m ahead, too soon to race past the stream's front car and merge ahead of it."""
+    s = make("dense", ["gradients=cv", "mpc=interactive", "mpc.strategy.lane_end=30.0"])[2]
     k = np.arange(-7, 1)[:, None] * DT * v
     cars = [[0.0, 0.0], [gap_ahead, 4.0], [-gap_behind, 4.0], [-gap_behind - 9.5, 4.0], [-gap_behind - 19.0, 4.0]]
     history = np.array(cars)[None] + np.stack([k[:, 0], np.zeros(8)], 1)[:, None]
