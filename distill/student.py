@@ -91,7 +91,8 @@ def phi_jac64(weights, s, window, jac=True, cols=None):
     for W, bias in weights[:-1]:
         a = h @ W.T + bias
         h, dh = _gelu(a)
-        grad = dh[:, :, None] * (W[:, cols] if grad is None else W @ grad)  # d h / d window[cols], (B, width, cols)
+        if jac:  # the values alone skip the chain: most of the cost
+            grad = dh[:, :, None] * (W[:, cols] if grad is None else W @ grad)  # d h / d window[cols], (B, width, cols)
     W, bias = weights[-1]
     t = np.tanh(h @ W.T + bias)
     cv = 2.0 * window[:, -1] - window[:, -2]
