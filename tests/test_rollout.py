@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from core.rollout import SLOTS, T_OBS, rollout, rollout_jacobian
+from core.rollout import SLOTS, T_OBS, react, rollout, rollout_jacobian
 from distill.predictors import ConstantVelocity
 
 T_P = 8
@@ -61,3 +61,25 @@ def test_constant_velocity_rollout_does_not_react_to_the_plan():
     _, grads = rollout_jacobian(ConstantVelocity().phi_jac, h, ego)
     assert np.abs(grads[:, 1:]).max() == 0.0
     np.testing.assert_array_equal(grads[:, 0].reshape(T_P, 2, T_P, 2), np.einsum("ab,ij->aibj", np.eye(T_P), np.eye(2)))
+
+
+def test_a_feedback_policy_answers_the_predicted_window_of_its_own_step():
+    """react hands the ego's policy the window ending at step tau, the others as predicted: an ego told to sit 3 m
+    behind car 2's last position (SmoothNet moves it) is there one step later, every step, for every batch member."""
+    net, hist = SmoothNet(), torch.as_tensor(np.stack([history(0), history(1)]), dtype=torch.float64)
+    net.double()
+    seen = []
+
+    def behind(window, tau):
+        seen.append(tau)
+        return window[:, -1, 2] - torch.tensor([3.0, 0.0], dtype=torch.float64)
+
+    with torch.no_grad():
+        out = react(net, hist, behind, T_P)
+    assert seen == list(range(T_P)) and out.shape == (2, T_P, SLOTS, 2)
+    previous = torch.cat([hist[:, -1:, 2], out[:, :-1, 2]], dim=1)  # car 2 at steps 0..T_P-1
+    assert torch.allclose(out[:, :, 0], previous - torch.tensor([3.0, 0.0], dtype=torch.float64))
+    fixed = out[:, :, 0].clone()  # replayed as a plan fixed in advance, the recursion gives the same rollout
+    with torch.no_grad():
+        assert torch.allclose(rollout(net, hist, fixed), out)
+
