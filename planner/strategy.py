@@ -230,9 +230,9 @@ def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x:
 class Chase:
     """K closed-loop candidates, each chasing one gap of the target lane as the predictor moves its cars: the ego's
     speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop STOP_MARGIN
-    before the lane's end braking as hard as a_box allows; within `align` m of the middle it leans to lean_y (m) to ask for room; once the
-    predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target lane, and there follows
-    the nearest car ahead by IDM. The predictor's rollout calls it once a step (Source.react)."""
+    before the lane's end braking as hard as a_box allows; within `align` m of the middle it leans to lean_y (m) to ask
+    for room; once the predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target
+    lane, and there follows the nearest car ahead by IDM. The predictor's rollout calls it once a step (Source.react)."""
 
     FOLLOW = IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0)  # the ego's own car-following once in the target lane
     OPEN = 60.0  # m: where a gap without a front (back) car is taken to end, ahead of (behind) the ego
@@ -258,8 +258,8 @@ class Chase:
         v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
         middle = 0.5 * (x_front + x_back)
         room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
-        ahead = z[:, 0] + z[:, 3] * s.params.dt  # a step on: it brakes before it has passed the point
-        stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - ahead))
+        x_next = z[:, 0] + z[:, 3] * s.params.dt  # a step on: it brakes before it has passed the point
+        stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - x_next))
         a = np.minimum((v_gap + (middle - z[:, 0]) / self.tau_x - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
         y_t = np.where(room >= self.clearance, s.y_ref,
                        np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
