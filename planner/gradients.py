@@ -32,10 +32,10 @@ class Source:
         self.name, self.predictor = name, predictor
 
     def values(self, history, ego_futures):
-        """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2)."""
+        """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2): react
+        with the plans fixed in advance."""
         ego_futures = np.asarray(ego_futures, dtype=float)
-        batch = np.broadcast_to(np.asarray(history, dtype=float), (len(ego_futures),) + np.shape(history))
-        return np.asarray(rollout(self.phi, batch, ego_futures), dtype=float)
+        return self.react(history, lambda window, tau: ego_futures[:, tau], ego_futures.shape[1], len(ego_futures))
 
     def react(self, history, ego_next, T, B):
         """Predicted xy (B, T, SLOTS, 2) of every slot over T steps while B feedback policies drive the ego:
@@ -204,11 +204,6 @@ class WorldOracle(CentralDifferences):
     """gradients=oracle: the WorldModel's futures, derivatives by central differences of them (step h, m)."""
 
     needs_world = True
-
-    def values(self, history, ego_futures):
-        """Every car's xy (B, T_p, SLOTS, 2) under each ego plan (B, T_p, 2), from copies of the running world."""
-        ego_futures = np.asarray(ego_futures, dtype=float)
-        return self.react(history, lambda window, tau: ego_futures[:, tau], ego_futures.shape[1], len(ego_futures))
 
     def react(self, history, ego_next, T, B):
         """Every car's xy (B, T, SLOTS, 2) while B feedback policies drive the ego, in copies of the running world."""
