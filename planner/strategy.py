@@ -247,7 +247,7 @@ class Chase:
     def __call__(self, window, k):
         """The egos' xy (K, 2) one step on from the last step of the predicted windows (K, T_obs, SLOTS, 2)."""
         s, z, K = self.s, self.z, len(self.gaps)
-        x, y = window[:, -1, :, 0], window[:, -1, :, 1]
+        x = window[:, -1, :, 0]
         v = (x - window[:, -2, :, 0]) / s.params.dt  # (K, SLOTS)
         rows = np.arange(K)
         front, back = self.gaps[:, 0], self.gaps[:, 1]
@@ -263,12 +263,12 @@ class Chase:
         a = np.minimum((v_gap + (middle - z[:, 0]) / self.tau_x - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
         y_t = np.where(room >= self.clearance, s.y_ref,
                        np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
-        target = np.abs(y[:, 1:] - s.y_ref) < s.road.lane_width / 2
         for b in np.flatnonzero(np.abs(z[:, 1] - s.y_ref) < s.road.lane_width / 4):  # in: follow the car ahead
-            ahead = np.flatnonzero(target[b] & (x[b, 1:] > z[b, 0])) + 1
-            lead = ahead[np.argmin(x[b, ahead])] if len(ahead) else None
+            xb, vb, target = seen_target_lane(s, window[b])
+            ahead = target[xb[target] > xb[0]]
+            lead = ahead[np.argmin(xb[ahead])] if len(ahead) else None
             a[b] = (self.FOLLOW.acceleration(z[b, 3]) if lead is None else
-                    self.FOLLOW.acceleration(z[b, 3], x[b, lead] - z[b, 0] - s.road.car_length, v[b, lead]))
+                    self.FOLLOW.acceleration(z[b, 3], xb[lead] - xb[0] - s.road.car_length, vb[lead]))
             y_t[b] = s.y_ref
         d, a, self.z = drive(s, z, y_t, a)
         self.Delta.append(d)
