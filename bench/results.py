@@ -46,7 +46,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from bench import breakdown
-from bench.results_plan import build_plan, dense_sources, swept, with_options
+from bench.results_plan import ORACLE, build_plan, dense_sources, label, swept, with_options
 from bench.results_plots import accuracy_plot, bar_plot, braking_plot, cooperation_plot
 from bench.results_tables import (
     GRADIENT_ROWS,
@@ -210,11 +210,10 @@ def cooperation(r: Report) -> list[dict]:
         for k, name in list(SEARCHES.items())[:2]:
             rates.setdefault(name, {})[c] = rate([w[f"{k}_courteous"] for w in worlds if int(w["seed"]) in seeds])
         for (sc, row, training), folder in r.batches.items():
-            if sc == key and training in (None, first):
+            if sc == key and training in (None, first) and row != label("oracle", ORACLE):  # it drives the headline alone
                 for m in methods(folder):
                     hits = [e["courteous"] for e in read_episodes(folder, m) if int(e["seed"]) in seeds]
                     rates.setdefault(f"{row} {m.upper()}", {})[c] = rate(hits)
-    rates = {name: v for name, v in rates.items() if len(v) == len(levels)}  # the oracle row drives the headline alone
     cooperation_plot(rates, levels, r.dest / "cooperation.png")
     return [{"worlds": n, "planner_seed": r.cfg.planner_seed, "training": first,
              "levels": ", ".join(levels), "table": "\n".join(sweep_table(rates, levels))}]
