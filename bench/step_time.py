@@ -191,7 +191,7 @@ def part(key, compiled=frozenset()) -> str:
     other compiled kernels (keys in `compiled`), its library, or its file in this repository (Python)."""
     file, _, name = key
     if key in compiled:
-        return {"admm_loop": "ADMM solve, one compiled call (numba + DAQP)",
+        return {"admm_loops": "ADMM solve, one compiled call (numba + DAQP)",
                 "solve": "DAQP solves called from Python"}.get(name, "compiled kernels (numba)")
     if file == "~":  # a C function: name it by the extension it belongs to
         return next((lib for lib in ("onnxruntime", "osqp", "daqp", "torch") if lib in name), "numpy / builtins")
@@ -203,14 +203,16 @@ def part(key, compiled=frozenset()) -> str:
 
 def profile(step, src, s_of, states) -> tuple[dict, dict]:
     """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP and DAQP
-    solves: per step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
-    from planner import daqp_qp
+    solves, ADMM solves in compiled calls and those calls: per step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
+    from planner import daqp_qp, jit_admm
 
-    prof, solves = cProfile.Profile(), int(daqp_qp.SOLVES[0])
+    prof, solves, admm = cProfile.Profile(), int(daqp_qp.SOLVES[0]), int(jit_admm.SOLVES[0])
     for state in states:
         prof.runcall(step, s_of(state.scenario), state.obs, src, state.warm)
     solves = int(daqp_qp.SOLVES[0]) - solves  # counted inside the compiled calls too, which cProfile cannot see into
+    admm = int(jit_admm.SOLVES[0]) - admm  # a compiled call may hold several solves (a multi-start step's)
     calls = defaultdict(float, {"DAQP solves": solves / len(states)} if solves else {})
+    calls.update({"one-call ADMM solves": admm / len(states)} if admm else {})
     stats = pstats.Stats(prof).stats  # {(file, line, name): (primitive calls, calls, own s, cumulative s, callers)}
     ms, compiled = defaultdict(float), kernels()
     for key, (_, n, own, _, _) in stats.items():
@@ -219,8 +221,10 @@ def profile(step, src, s_of, states) -> tuple[dict, dict]:
             calls["onnxruntime calls"] += n / len(states)
         if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
             calls["OSQP solves"] += n / len(states)
-        if key in compiled and key[2] in ("admm_loop", "solve"):
-            calls["one-call ADMM solves" if key[2] == "admm_loop" else "DAQP solves called from Python"] += n / len(states)
+        if key in compiled and key[2] == "admm_loops":
+            calls["compiled ADMM calls"] += n / len(states)
+        if key in compiled and key[2] == "solve":
+            calls["DAQP solves called from Python"] += n / len(states)
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 
 

@@ -1,21 +1,25 @@
 """Algorithm 1 for the compiled core (mpc.admm.core=compiled): planner.admm's sweep Delta -> alpha -> Z -> mu with its
 arithmetic in numba kernels; DAQP solves a box QP whose unconstrained minimiser leaves the box, and the Z-step
 (planner.jit_zstep) its QPs. With a predictor the core runs itself (cv, the student) the whole solve is one compiled
-call (admm_loop); with the others, whose Jacobians come from Python, the same kernels are driven from Python.
-planner.admm stays the tested reference. The one-call solve's thin layers (box_update, jit_zstep's z_update and
-safety_rows, jit_rollout's predicted) are inlined by numba (inline="always"): compiled as separate functions, each
-layer re-optimised all the code linked beneath it, and a fresh clone compiled for 46 s instead of 30."""
+call, and so are all the solves of a multi-start step (admm_loops: one solve after another); with the others, whose
+Jacobians come from Python, the same kernels are driven from Python. planner.admm stays the tested reference. The
+one-call solve's layers (admm_loop, box_update, jit_zstep's z_update and safety_rows, jit_rollout's predicted) are
+inlined by numba (inline="always"): compiled as separate functions, each layer re-optimised all the code linked
+beneath it, and a fresh clone compiled for 46 s instead of 30."""
 from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numba.typed import List
 
 from planner import admm, daqp_qp
 from planner.admm import CONVERGED, RESTART, ADMMState, Problem, Solve, Solvers
 from planner.daqp_qp import NO_ROWS, DaqpBox, optimal
 from planner.jit_linalg import matvec, rmatvec
-from planner.jit_zstep import CompiledSQPZStep, Lin, ZInfo, z_update
+from planner.jit_zstep import CompiledSQPZStep, Lin, ZData, ZInfo, ZKernel, z_update
 from planner.zstep import ZState
+
+SOLVES = np.zeros(1, np.int64)  # ADMM solves run by compiled_solves in this process (the bench's profile reads it)
 
 
 class Box(NamedTuple):
@@ -144,7 +148,7 @@ def box_update(qp, cold, box, update):
     return x, flag, True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def admm_loop(dyn, boxes, handles, zk, it, stop):
     """admm_solve's sweeps as one kernel for a compiled predictor (planner.jit_zstep.z_update): dyn = (A, B, C, D);
     boxes, handles: the Delta and alpha updates' Box and DAQP handle; zk: the Z-step's ZKernel; it: the Iterate to
@@ -179,8 +183,44 @@ def admm_loop(dyn, boxes, handles, zk, it, stop):
     return Loop(Iterate(Delta, alpha, Z, mu, radius, fresh, lin), k, False, F_norm, step, info, flag)
 
 
-def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
-    """admm_solve in one call of admm_loop (the Z-step a CompiledSQPZStep over a compiled predictor)."""
+@njit(cache=True)
+def pick_box(b, k):
+    """Start k's Box of Boxes stacked over the starts."""
+    return Box(b.P[k], b.P_inv[k], b.q[k], b.lo[k], b.hi[k])
+
+
+@njit(cache=True)
+def admm_loops(dyn, boxes, handles, zk, it, stop):
+    """admm_loop for every start of a multi-start step in one call, one start after another (the DAQP handles start
+    cold in each): the arguments as admm_loop's, each array stacked over the starts on a leading axis (zk: its data
+    only; stop: Stop of arrays). Returns a typed list of Loop, one per start."""
+    out = List()
+    for k in range(len(it.Delta)):
+        lin = Lin(it.lin.ego0[k], it.lin.values0[k], it.lin.grads[k], it.lin.taken[k])
+        d = zk.data
+        data = ZData(d.H[k], d.q[k], d.C[k], d.rho[k], d.lo[k], d.hi[k], d.xy[k])
+        out.append(admm_loop((dyn[0][k], dyn[1][k], dyn[2][k], dyn[3][k]), (pick_box(boxes[0], k), pick_box(boxes[1], k)),
+                             handles, ZKernel(data, zk.sqp, zk.pred, zk.rows, zk.qp),
+                             Iterate(it.Delta[k], it.alpha[k], it.Z[k], it.mu[k], it.radius[k], it.fresh[k], lin),
+                             Stop(stop.max_iters[k], stop.tol_F[k], stop.tol_step[k])))
+    return out
+
+
+def stacked(items):
+    """NamedTuples (or tuples) of arrays and numbers, nested alike, as one of their kind with each leaf stacked over the
+    items on a new leading axis (np.stack: a start of another shape raises ValueError)."""
+    first = items[0]
+    if isinstance(first, tuple):
+        fields = [stacked([item[i] for item in items]) for i in range(len(first))]
+        return type(first)(*fields) if hasattr(first, "_fields") else tuple(fields)
+    if len(items) == 1:  # a view: one solve's arrays as they are
+        return np.ascontiguousarray(np.asarray(first)[None])
+    return np.stack([np.asarray(item) for item in items])
+
+
+def loop_args(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
+    """admm_loop's per-start arguments (dyn, boxes, the Z-step's ZData, the Iterate to start from, Stop) for a solve
+    from st, and its shared ones (the DAQP handles, the Z-step's ZKernel)."""
     zs, c = solvers.zstep, np.ascontiguousarray
     T_p, slots = len(st.Delta), zs.safety.history.shape[1]
     if st.zstate is None:  # no linearisation yet: placeholders of its shapes, `taken` False
@@ -193,14 +233,39 @@ def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, to
                     st.zstate is None, lin)
     boxes = box(solvers.delta_qp, prob.Phi_1.q), box(solvers.alpha_qp, prob.Phi_2.q)
     handles = tuple(daqp_qp.shared(role, len(b.lo)) for role, b in zip(("delta", "alpha"), boxes))
-    out = admm_loop(tuple(c(M) for M in prob.dyn), boxes, handles, zs.kernel(z_qp), start,
-                    Stop(int(max_iters), float(tol_F), float(tol_step)))
-    it, info = out.it, out.info
+    own = (tuple(c(M) for M in prob.dyn), boxes, zs.data, start, Stop(int(max_iters), float(tol_F), float(tol_step)))
+    return own, (handles, zs.kernel(z_qp))
+
+
+def together(solvers: Solvers) -> bool:
+    """Whether a solve runs as one compiled call: its Z-step a CompiledSQPZStep over a compiled predictor."""
+    return isinstance(solvers.zstep, CompiledSQPZStep) and solvers.zstep.safety.params is not None
+
+
+def compiled_solves(solves) -> list:
+    """admm_loop's Loop for every solve of `solves`, compiled_solve's arguments (Problem, Solvers, ADMMState, max_iters,
+    tol_F, tol_step) each, all in one call of admm_loops: their Z-steps `together` and alike but for their data."""
+    args = [loop_args(*solve) for solve in solves]
+    SOLVES[0] += len(solves)
+    (dyn, boxes, data, start, stop), (handles, zk) = stacked([a[0] for a in args]), args[0][1]
+    if any(a[1][1].sqp != zk.sqp or a[1][1].rows != zk.rows for a in args):
+        raise ValueError("the starts' Z-steps differ in their settings or rows")
+    return list(admm_loops(dyn, boxes, handles, zk._replace(data=data), start, stop))
+
+
+def solved(out: Loop, solvers: Solvers):
+    """(ADMMState, Solve) of admm_loop's Loop for a solve with these solvers; SolverFailure if DAQP failed in it."""
+    it, info, zs = out.it, out.info, solvers.zstep
     optimal(it.Z, out.flag)
     zinfo = {**info._asdict(), "infeasible": info.slack > zs.s.slack_tol}
     zstate = None if it.fresh else ZState(it.radius, it.lin[:3])
     return (ADMMState(it.Delta, it.alpha, it.Z, it.mu, zstate),
             Solve(out.iters, "converged" if out.converged else "max_iters", out.F_norm, out.change, zinfo))
+
+
+def compiled_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F, tol_step):
+    """admm_solve in one compiled call (the Z-step a CompiledSQPZStep over a compiled predictor)."""
+    return solved(compiled_solves([(prob, solvers, st, max_iters, tol_F, tol_step)])[0], solvers)
 
 
 def box_solve(qp: DaqpBox, update):
@@ -214,7 +279,7 @@ def admm_solve(prob: Problem, solvers: Solvers, st: ADMMState, max_iters, tol_F,
     """planner.admm.admm_solve with the compiled kernels: sweeps until ||F|| <= tol_F, the iterate change <= tol_step
     and the Z-step's b_i linearised within tol_step (m) of its result, or max_iters; one compiled call (compiled_solve)
     when the core runs the predictor itself."""
-    if isinstance(solvers.zstep, CompiledSQPZStep) and solvers.zstep.safety.params is not None:
+    if together(solvers):
         return compiled_solve(prob, solvers, st, max_iters, tol_F, tol_step)
     dyn = tuple(np.ascontiguousarray(M) for M in prob.dyn)
     d_qp, a_qp = DaqpBox(solvers.delta_qp), DaqpBox(solvers.alpha_qp)

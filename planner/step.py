@@ -7,7 +7,7 @@ result: it returns the fallback (planner.safeguard) with the reason.
 import numpy as np
 
 from core.jobs import UserError
-from planner import admm, safeguard
+from planner import admm, jit_admm, jit_rollout, safeguard
 from planner.mpc import J_of, Observation, Settings, StepResult, build
 from planner.qp import SolverFailure
 
@@ -24,13 +24,19 @@ def offered(s: Settings, obs: Observation, source, plan: admm.ADMMState):
 
 
 def solve(s: Settings, aim: Settings | None, obs: Observation, source, start: admm.ADMMState, zstep):
-    """ADMM (Algorithm 1) with `aim`'s settings from `start`, then the safeguard's check of its plan, repaired if it fails:
-    (StepResult with fallback "" and J by the scenario's own settings s, or None; why it failed); aim None: `start` as it
-    is, checked. Raises what the solvers raise."""
+    """ADMM (Algorithm 1) with `aim`'s settings from `start`, then the safeguard's check of its plan (checked): (StepResult
+    with fallback "" and J by the scenario's own settings s, or None; why it failed); aim None: `start` as it is, checked.
+    Raises what the solvers raise."""
     if aim is None:
         return offered(s, obs, source, start)
     prob, solvers, start = build(aim, obs, source, None, zstep, start)
     st, out = aim.core.solve(prob, solvers, start, aim.admm.max_iters, aim.admm.tol_F, aim.admm.tol_step)
+    return checked(s, aim, obs, source, solvers, st, out)
+
+
+def checked(s: Settings, aim: Settings, obs: Observation, source, solvers, st: admm.ADMMState, out: admm.Solve):
+    """The safeguard's check of ADMM's plan st (solved with `aim`'s settings and `solvers`), repaired if it fails: as
+    solve's result."""
     if not all(np.all(np.isfinite(a)) for a in (st.Delta, st.alpha, st.Z, st.mu)):
         return None, "non-finite iterate"
     values = safeguard.rollout(aim, obs, source, st.Delta, st.alpha)[1]
@@ -63,6 +69,35 @@ def guarded(part):
         return None, f"step error ({type(e).__name__}: {str(e)[:200]})"
 
 
+def solve_all(s: Settings, obs: Observation, source, starts, zstep) -> list:
+    """solve from every Start of a step, each guarded: [(StepResult or None, why)]. Where the compiled core runs the
+    source's predictor itself (cv, the student) the starts' ADMM solves run in one compiled call
+    (planner.jit_admm.compiled_solves), with their plans as solve's own; for other sources, one solve after another."""
+    aimed = [k for k, start in enumerate(starts) if start.aim is not None]
+    one_by_one = lambda: [guarded(lambda: solve(s, start.aim, obs, source, start.plan, zstep)) for start in starts]
+    if (len(aimed) < 2 or any(starts[k].aim.core.solve is not jit_admm.admm_solve for k in aimed)
+            or jit_rollout.compiled_params(source) is None):
+        return one_by_one()
+    built = {k: guarded(lambda: (build(starts[k].aim, obs, source, None, zstep, starts[k].plan), "")) for k in aimed}
+    ok = [k for k in aimed if built[k][0] is not None and jit_admm.together(built[k][0][1])]
+    admm_of = lambda k: starts[k].aim.admm
+    try:
+        loops = dict(zip(ok, jit_admm.compiled_solves(
+            [(*built[k][0], admm_of(k).max_iters, admm_of(k).tol_F, admm_of(k).tol_step) for k in ok]) if ok else []))
+    except Exception:  # an error inside the joint call (or starts unlike each other): each start's own, one by one
+        return one_by_one()
+
+    def one(k, start):
+        if start.aim is None:
+            return offered(s, obs, source, start.plan)
+        if k not in loops:  # its set-up failed (built's reason), or it does not solve in one call
+            return built[k] if built[k][0] is None else solve(s, start.aim, obs, source, start.plan, zstep)
+        solvers = built[k][0][1]
+        return checked(s, start.aim, obs, source, solvers, *jit_admm.solved(loops[k], solvers))
+
+    return [guarded(lambda: one(k, start)) for k, start in enumerate(starts)]
+
+
 def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
     """One ADMM-NNMPC step: ADMM from each of s.strategy's candidate starts, the safeguard on each plan, s.strategy's
     choice among those that pass, or the fallback; zstep: the Z-step class with its settings bound (conf/zstep/, bound
@@ -71,8 +106,7 @@ def mpc_step(s: Settings, obs: Observation, source, warm, zstep) -> StepResult:
         return safeguard.fallback(s, obs, source, warm, "non-finite observation")
     starts, why = guarded(lambda: (s.strategy.candidates(s, obs, warm, source), ""))
     plans, whys = [], [] if starts is not None else [("candidates", why)]
-    for start in starts or ():
-        result, why = guarded(lambda: solve(s, start.aim, obs, source, start.plan, zstep))
+    for start, (result, why) in zip(starts or (), solve_all(s, obs, source, starts or [], zstep)):
         if result is None:
             whys.append((start.name, why))
         else:

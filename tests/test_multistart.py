@@ -1,0 +1,105 @@
+"""The multi-start step (mpc=courteous) solves all its starts in one compiled call for the sources the compiled core runs
+itself (cv, the student): every start gets the plan, check and reason it gets solved alone, so the step chooses the same
+plan; the other sources, and a joint call that fails, take the one-by-one path."""
+import numpy as np
+import pytest
+from test_surrogate import smooth_student
+
+from distill.models import StudentPredictor
+from distill.predictors import ConstantVelocity
+from planner import jit_admm, mpc, step
+from planner.gradients import ExactLocal
+from planner.setup import make
+
+SOURCES = {"cv": lambda: ExactLocal("cv", ConstantVelocity()),
+           "student": lambda: ExactLocal("student", StudentPredictor(smooth_student()))}
+
+
+def _observation(y, v, cars):
+    """two_lane: the ego at (0, y) at v m/s and the four others (core.rollout.SLOTS) at `cars` [(x m, y m, v m/s,
+    slowing m/s^2)], eight steps of history of 0.2 s."""
+    t = np.arange(7, -1, -1) * 0.2  # s before now
+    ego = np.stack([-v * t, np.full(8, y)], 1)
+    others = [np.stack([x - u * t - 0.5 * a * t**2, np.full(8, cy)], 1) for x, cy, u, a in cars]
+    return mpc.Observation(np.array([0.0, y, 0.0, v]), np.zeros(2), np.stack([ego, *others], 1))
+
+
+@pytest.fixture(scope="module")
+def states():
+    """mpc=courteous on two_lane and (observation, warm start) pairs: leaning beside a car, in lane before a gap, and in
+    lane beside a car seen slowing (KeepAhead's lean); each cold and warm-started from its cold step's plan."""
+    _, _, s = make("two_lane", ["gradients=cv", "mpc=courteous"])
+    observations = [_observation(1.9, 5.0, [(0.5, 4.0, 5.0, 0.0), (60.0, 4.0, 5.0, 0.0), (80.0, 4.0, 5.0, 0.0),
+                                            (100.0, 4.0, 5.0, 0.0)]),
+                    _observation(0.0, 6.0, [(-12.0, 4.0, 5.0, 0.0), (14.0, 4.0, 5.0, 0.0), (40.0, 4.0, 5.0, 0.0),
+                                            (-40.0, 4.0, 5.0, 0.0)]),
+                    _observation(1.9, 4.0, [(-4.0, 4.0, 4.0, 1.5), (9.0, 4.0, 5.0, 0.0), (30.0, 4.0, 5.0, 0.0),
+                                            (-30.0, 4.0, 5.0, 0.0)])]
+    cv, zstep = SOURCES["cv"](), _zstep()
+    warm = [step.mpc_step(s, obs, cv, None, zstep).plan for obs in observations]
+    return s, zstep, [(obs, None) for obs in observations] + list(zip(observations, warm))
+
+
+def _zstep():
+    """The bound sqp Z-step of the planner's config."""
+    from hydra.utils import instantiate
+
+    from planner.setup import planner_config
+
+    return instantiate(planner_config("two_lane", ["gradients=cv"]).solver.step).keywords["zstep"]
+
+
+def _counted(monkeypatch):
+    """A list that grows by one at each call of the compiled multi-start kernel."""
+    calls, loops = [], jit_admm.admm_loops
+    monkeypatch.setattr(jit_admm, "admm_loops", lambda *a: calls.append(len(a[4].Delta)) or loops(*a))
+    return calls
+
+
+def _alone(s, obs, source, starts, zstep):
+    """Each start solved by itself, as the step did before the joint call."""
+    return [step.guarded(lambda: step.solve(s, st.aim, obs, source, st.plan, zstep)) for st in starts]
+
+
+def _same(a, b):
+    """Whether two solves' (StepResult or None, why) agree exactly: plan, control, cost, checks, reason."""
+    (ra, why_a), (rb, why_b) = a, b
+    if ra is None or rb is None:
+        return ra is rb and why_a == why_b
+    return (all(np.array_equal(x, y) for x, y in zip(ra.plan[:4], rb.plan[:4])) and np.array_equal(ra.u, rb.u)
+            and (ra.J, ra.iters, ra.reason, ra.b_min, ra.braking, ra.c_min) == (rb.J, rb.iters, rb.reason, rb.b_min, rb.braking, rb.c_min))
+
+
+@pytest.mark.parametrize("name", list(SOURCES))
+def test_all_starts_in_one_call_give_each_start_its_own_plan_and_the_same_choice(name, states, monkeypatch):
+    s, zstep, pairs = states
+    source, calls = SOURCES[name](), _counted(monkeypatch)
+    for obs, warm in pairs:
+        starts = s.strategy.candidates(s, obs, warm, source)
+        del calls[:]
+        joint = step.solve_all(s, obs, source, starts, zstep)
+        assert calls == [len(starts)] == [3]  # one compiled call for the step's three starts
+        alone = _alone(s, obs, source, starts, zstep)
+        assert len(calls) == 1 + len(starts)
+        assert all(_same(a, b) for a, b in zip(joint, alone))
+        chosen = step.mpc_step(s, obs, source, warm, zstep)
+        _, expected = s.strategy.choose(s, obs, [(st, r) for st, (r, _) in zip(starts, alone) if r is not None])
+        assert chosen.fallback == "" and np.array_equal(chosen.plan.Delta, expected.plan.Delta)
+        assert np.array_equal(chosen.plan.alpha, expected.plan.alpha)
+
+
+def test_a_source_the_core_does_not_run_and_a_failed_joint_call_take_the_one_by_one_path(states, monkeypatch):
+    s, zstep, pairs = states
+    obs, warm = pairs[1]
+    analytic, calls = make("two_lane", ["gradients=analytic"])[1], _counted(monkeypatch)
+    starts = s.strategy.candidates(s, obs, warm, analytic)
+    assert [r is not None for r, _ in step.solve_all(s, obs, analytic, starts, zstep)] == [True] * 3 and calls == []
+    cv = SOURCES["cv"]()
+    starts = s.strategy.candidates(s, obs, warm, cv)
+    alone = _alone(s, obs, cv, starts, zstep)
+    del calls[:]
+    counted = jit_admm.admm_loops
+    fail_once = lambda *a: (calls.append("failed"), monkeypatch.setattr(jit_admm, "admm_loops", counted))[0] and 1 / 0
+    monkeypatch.setattr(jit_admm, "admm_loops", fail_once)
+    assert all(_same(a, b) for a, b in zip(step.solve_all(s, obs, cv, starts, zstep), alone))
+    assert calls == ["failed", 1, 1, 1]  # then each start in a call of its own
