@@ -54,7 +54,7 @@ def verdicts(source, s, obs, plans) -> tuple:
     """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order) of the K candidate plans as `source`
     judges them."""
     judged = s.strategy.judge(s, obs, source, *plans)
-    merges = np.array([j.merge <= s.strategy.horizon for j in judged])
+    merges = np.array([j.merge < s.strategy.never(s) for j in judged])
     good = merges & [s.strategy.acceptable(s, j) for j in judged]
     return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged)
 

@@ -232,15 +232,16 @@ class Chase:
     speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop STOP_MARGIN
     before the lane's end braking as hard as a_box allows; within `align` m of the middle it leans to lean_y (m) to ask
     for room; once the predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target
-    lane, and there follows the nearest car ahead by IDM. The predictor's rollout calls it once a step (Source.react)."""
+    lane, and there follows the nearest car ahead by IDM. A gap with no seen car ahead (behind) ends at the nearest
+    place an unseen car may be (`unseen`). The predictor's rollout calls it once a step (Source.react)."""
 
     FOLLOW = IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0)  # the ego's own car-following once in the target lane
-    OPEN = 60.0  # m: where a gap without a front (back) car is taken to end, ahead of (behind) the ego
 
     def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, tau: float,
-                 tau_x: float, align: float):
+                 tau_x: float, align: float, unseen):
         self.s, self.gaps, self.lean_y, self.clearance = s, np.asarray(gaps), np.asarray(lean_y), np.asarray(clearance)
         self.lane_y, self.lane_end, self.tau, self.tau_x, self.align = lane_y, lane_end, tau, tau_x, align
+        self.unseen = unseen
         self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
         self.Delta, self.alpha, self.Z = [], [], []
 
@@ -251,8 +252,9 @@ class Chase:
         v = (x - window[:, -2, :, 0]) / s.params.dt  # (K, SLOTS)
         rows = np.arange(K)
         front, back = self.gaps[:, 0], self.gaps[:, 1]
-        x_front = np.where(front > 0, x[rows, front], z[:, 0] + self.OPEN)
-        x_back = np.where(back > 0, x[rows, back], z[:, 0] - self.OPEN)
+        ahead, behind, v_unseen = self.unseen
+        x_front = np.where(front > 0, x[rows, front], ahead + v_unseen * k * s.params.dt)
+        x_back = np.where(back > 0, x[rows, back], behind + v_unseen * k * s.params.dt)
         known = np.stack([front > 0, back > 0], 1)
         v_pair = np.stack([v[rows, front], v[rows, back]], 1)
         v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
@@ -277,18 +279,30 @@ class Chase:
         return self.z[:, :2]
 
 
+def unseen(s: Settings, history) -> tuple:
+    """(x ahead m, x behind m, v m/s): the nearest places along the road where a target-lane car the predictor does not
+    see may be at the last step of the history (T_obs, SLOTS, 2), and the speed it is taken to drive at (the target
+    lane's mean, else the ego's). Perception keeps the nearest cars (data.perception), so an unseen car is no nearer the
+    ego than the farthest seen one: in dense traffic, a gap beyond the seen cars is not open but unknown."""
+    x, v, target = seen_target_lane(s, history)
+    xy = history[-1]
+    r = np.hypot(*(xy[1:] - xy[0]).T).max(initial=0.0)
+    along = np.sqrt(max(r**2 - (s.y_ref - xy[0, 1]) ** 2, 0.0))
+    return x[0] + along, x[0] - along, float(v[target].mean() if len(target) else v[0])
+
+
 def gaps(s: Settings, history) -> list:
     """The gaps of the target lane seen in the last step of the history (T_obs, SLOTS, 2), back to front: (name, front
-    slot, back slot), slot 0 where the gap is open ahead (behind)."""
+    slot, back slot), slot 0 where no car is seen ahead (behind): up to the nearest unseen car (`unseen`)."""
     x, _, target = seen_target_lane(s, history)
     cars = [0, *target[np.argsort(x[target])], 0]
-    where = lambda i: f"{x[i] - x[0]:+.0f}" if i else "open"
+    where = lambda i: f"{x[i] - x[0]:+.0f}" if i else "unseen"
     return [(f"{where(back)}..{where(front)} m", front, back) for back, front in zip(cars[:-1], cars[1:])]
 
 
 class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
-    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; horizon + 1: none), its
+    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; Interactive.never: none), its
     cost J over T_p, and how far (m) it runs out of road: past the point from which, not yet merged, it could still
     stop before its lane's end braking as hard as a_box allows (0: never)."""
 
@@ -314,7 +328,8 @@ class Interactive:
 
     lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
     merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
-    horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges a candidate; at least T_p
+    horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges an open-loop candidate; at least T_p
+    chase_horizon: int = rule(Int(1))  # steps (of dt) over which it judges a closed-loop one; at least T_p
     tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
     tau_x: float = rule(Real(0, lo_open=True))  # s: time constant of a gap-targeting candidate closing on the gap's middle
     stream_dv: tuple = rule(ListOf(Real(), at_least=1))  # m/s: the speeds relative to the stream's mean a candidate may hold
@@ -327,6 +342,10 @@ class Interactive:
 
     def __post_init__(self):
         check_fields(self, "mpc.strategy")
+
+    def never(self, s: Settings) -> int:
+        """The merge step of a verdict whose candidate does not merge: one past both families' horizons."""
+        return max(self.horizon, self.chase_horizon, s.T_p) + 1
 
     def plans(self, s: Settings, obs: Observation, warm):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every open-loop candidate over the
@@ -357,13 +376,14 @@ class Interactive:
     def chased(self, s: Settings, obs: Observation, source):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims, values (K, H, SLOTS, 2)) of the closed-loop candidates
         (Chase), each driven against the predictor's rollout in one batched recursion."""
-        H, lane_y = max(self.horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
+        H, lane_y = max(self.chase_horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
         lean_y = [lane_y + np.sign(s.y_ref - lane_y) * d for d in self.chase_lean]
         combos = [(g, y, c) for g in gaps(s, obs.history) for y in lean_y for c in self.clearance]
         if not combos or s.road.lane_of(obs.z0[1]) == s.road.lane_of(s.y_ref):
             return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), [], np.empty((0, H, *np.shape(obs.history)[1:]))
         policy = Chase(s, obs.z0, [(f, b) for (_, f, b), _, _ in combos], [y for _, y, _ in combos],
-                       [c for _, _, c in combos], lane_y, self.lane_end, self.tau, self.tau_x, self.align)
+                       [c for _, _, c in combos], lane_y, self.lane_end, self.tau, self.tau_x, self.align,
+                       unseen(s, obs.history))
         values = source.react(obs.history, policy, H, len(combos))
         names = [f"chase gap {g}, lean to {y:.2f} m, enter at {c} m" for (g, _, _), y, c in combos]
         Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
@@ -383,7 +403,7 @@ class Interactive:
         history = np.broadcast_to(obs.history, (K, *np.shape(obs.history)))
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
         in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
-        merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, H + 1)
+        merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, self.never(s))
         reach = ego[:, :, 0] + ego[:, :, 3] ** 2 / (-2.0 * s.a_box[0]) - self.lane_end
         overrun = np.maximum(0.0, np.where(np.cumsum(in_target, axis=1) == 0, reach, 0.0).max(axis=1))
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
@@ -404,14 +424,15 @@ class Interactive:
                       else (1, -min(judged[k].b_min, 0.0), judged[k].overrun, max(judged[k].braking - b_c, 0.0)))
 
     def ranked(self, s: Settings, obs: Observation, warm, source):
-        """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, H), alpha (K, H),
-        Z (K, 4H), aims [(y m, v m/s)], verdicts), each in that order."""
+        """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, T_p), alpha (K, T_p),
+        Z (K, 4T_p), aims [(y m, v m/s)], verdicts), each in that order."""
         names, Delta, alpha, Z, aims = self.plans(s, obs, warm)
         judged = self.judge(s, obs, source, Delta, alpha, Z)
         c_names, c_Delta, c_alpha, c_Z, c_aims, c_values = self.chased(s, obs, source)
         judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z)
-        names, aims = [*names, *c_names], [*aims, *c_aims]
-        Delta, alpha, Z = np.vstack([Delta, c_Delta]), np.vstack([alpha, c_alpha]), np.vstack([Z, c_Z])
+        names, aims, T = [*names, *c_names], [*aims, *c_aims], s.T_p  # the families' horizons differ; the MPC's is shared
+        Delta, alpha = np.vstack([Delta[:, :T], c_Delta[:, :T]]), np.vstack([alpha[:, :T], c_alpha[:, :T]])
+        Z = np.vstack([Z[:, :4 * T], c_Z[:, :4 * T]])
         k = self.order(s, judged)
         return [names[i] for i in k], Delta[k], alpha[k], Z[k], [aims[i] for i in k], [judged[i] for i in k]
 
@@ -421,7 +442,7 @@ class Interactive:
         names, Delta, alpha, Z, aims, _ = self.ranked(s, obs, warm, source)
         out = []
         for rank in range(min(self.refine, len(names))):
-            plan = admm.ADMMState(Delta[rank, :s.T_p], alpha[rank, :s.T_p], Z[rank, :4 * s.T_p], np.zeros(4 * s.T_p))
+            plan = admm.ADMMState(Delta[rank], alpha[rank], Z[rank], np.zeros(4 * s.T_p))
             y, v = aims[rank]
             out += [Start(names[rank], plan, replace(s, y_ref=float(y), v_ref=float(v)), rank),
                     Start(f"{names[rank]} as planned", plan, None, rank + 0.5)]

@@ -6,7 +6,7 @@ import pytest
 from planner import mpc, step
 from planner.gradients import Source
 from planner.setup import make
-from planner.strategy import Interactive, Judged, paces, track
+from planner.strategy import Interactive, Judged, gaps, paces, track, unseen
 
 DT = 0.2
 
@@ -34,12 +34,12 @@ def scripted(brake=0.0, trigger=1.0):
     return Source("scripted", Scripted(brake, trigger))
 
 
-def world(gap_ahead, gap_behind, v=5.0):
+def world(gap_ahead, gap_behind, v=5.0, lane_end=30.0):
     """Settings of mpc=interactive on dense and an observation: the ego in its lane (y 0) at v m/s, a target-lane car
     gap_ahead m ahead and a stream behind it, gap_behind m then every 9.5 m, all at v (too close for the safety shape's
     10.1 m: an ego that stopped would let the stream pass, but find no room in it); history at constant velocity. The
-    ego's lane ends 30 m ahead, too soon to race past the stream's front car and merge ahead of it."""
-    s = make("dense", ["gradients=cv", "mpc=interactive", "mpc.strategy.lane_end=30.0"])[2]
+    ego's lane ends lane_end m ahead: at 30, too soon to race past the stream's front car and merge ahead of it."""
+    s = make("dense", ["gradients=cv", "mpc=interactive", f"mpc.strategy.lane_end={lane_end}"])[2]
     k = np.arange(-7, 1)[:, None] * DT * v
     cars = [[0.0, 0.0], [gap_ahead, 4.0], [-gap_behind, 4.0], [-gap_behind - 9.5, 4.0], [-gap_behind - 19.0, 4.0]]
     history = np.array(cars)[None] + np.stack([k[:, 0], np.zeros(8)], 1)[:, None]
@@ -76,20 +76,20 @@ def test_a_gap_targeting_candidate_closes_on_the_gap_s_middle():
 def test_a_predictor_that_sees_the_driver_behind_yield_merges_where_constant_velocity_waits():
     s, obs = world(6.0, 3.0)  # 9 m between the two: the shape needs 10.1 m, so nothing fits unless the car behind yields
     name, verdict = best(s, obs, scripted())  # constant velocity: nobody reacts
-    assert verdict.merge == s.strategy.horizon + 1 and s.strategy.acceptable(s, verdict)
+    assert verdict.merge == s.strategy.never(s) and s.strategy.acceptable(s, verdict)
     name, verdict = best(s, obs, scripted(brake=1.5))  # it yields, gently, to a lean
-    assert verdict.merge <= s.strategy.horizon and s.strategy.acceptable(s, verdict)
+    assert verdict.merge < s.strategy.never(s) and s.strategy.acceptable(s, verdict)
 
 
 def test_a_chasing_candidate_enters_once_the_predicted_clearance_opens():
     s, obs = world(6.0, 3.0)
-    H = s.strategy.horizon
+    H = max(s.strategy.chase_horizon, s.T_p)
     for source, merges in ((scripted(), False), (scripted(brake=1.5), True)):
         names, Delta, alpha, Z, _, values = s.strategy.chased(s, obs, source)
         judged = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
         beside = [k for k, n in enumerate(names) if n.startswith("chase gap -3..+6 m")]
         assert len(beside) == len(s.strategy.clearance)  # one per clearance, all chasing the gap the ego is beside
-        good = [k for k in beside if judged[k].merge <= H and s.strategy.acceptable(s, judged[k])]
+        good = [k for k in beside if judged[k].merge < s.strategy.never(s) and s.strategy.acceptable(s, judged[k])]
         assert bool(good) == merges  # at constant velocity the gap never opens: whoever enters it breaks the shape
         for k in good:  # it steered in only after the car behind had dropped back by the clearance asked for
             ego, back = Z[k].reshape(H, 4), values[k, :, 2, 0]
@@ -101,9 +101,31 @@ def test_a_chasing_candidate_enters_once_the_predicted_clearance_opens():
 def test_a_predictor_that_sees_the_cut_in_force_the_driver_behind_refuses_the_gap_constant_velocity_takes():
     s, obs = world(5.5, 5.5)  # 11 m: room enough at constant velocity
     name, verdict = best(s, obs, scripted())
-    assert verdict.merge <= s.strategy.horizon and verdict.braking == pytest.approx(0.0, abs=1e-9)
+    assert verdict.merge < s.strategy.never(s) and verdict.braking == pytest.approx(0.0, abs=1e-9)
     name, verdict = best(s, obs, scripted(brake=6.0, trigger=2.0))  # entering its lane makes it brake at 6 m/s^2
-    assert verdict.merge == s.strategy.horizon + 1 and verdict.braking <= s.b_courtesy
+    assert verdict.merge == s.strategy.never(s) and verdict.braking <= s.b_courtesy
+
+
+@pytest.mark.parametrize("front,enters", [(6.0, True), (16.0, False)])
+def test_a_gap_beyond_the_seen_cars_ends_where_an_unseen_car_may_be(front, enters):
+    s, obs = world(front, 3.0, lane_end=200.0)  # seen: `front` m ahead; 3, 12.5 and 22 m behind, 4 m across
+    ahead, behind, v = unseen(s, obs.history)
+    along = np.sqrt(22.0**2 + 4.0**2 - (s.y_ref - 0.0) ** 2)  # the farthest seen car's distance, along the target lane
+    assert (ahead, behind, v) == pytest.approx((along, -along, 5.0))
+    assert [name for name, *_ in gaps(s, obs.history)][-1] == f"+{front:.0f}..unseen m"
+    names, Delta, alpha, Z, _, values = s.strategy.chased(s, obs, scripted())
+    H = max(s.strategy.chase_horizon, s.T_p)
+    entered = 0
+    for k in (k for k, n in enumerate(names) if n.startswith(f"chase gap +{front:.0f}..unseen m")):
+        ego, car = Z[k].reshape(H, 4), values[k, :, 1, 0]
+        turned = np.flatnonzero(ego[:, 1] > s.strategy.chase_lean[0] + 0.05)
+        if len(turned):  # it steered in only with the clearance asked for to the seen car and to one at the bound
+            t = turned[0] - 1
+            bound = ahead + 5.0 * (t + 1) * DT  # where it stands when the policy decides the step after t
+            assert min(bound - ego[t, 0], ego[t, 0] - car[t]) - s.road.car_length >= s.strategy.clearance[entered] - 1e-9
+            entered += 1
+    # 16.4 m between the seen car and the bound: room for the ego at every clearance; 6.4 m: none (an open road would have)
+    assert entered == (len(s.strategy.clearance) if enters else 0)
 
 
 def test_a_candidate_that_cannot_stop_before_the_lane_s_end_is_refused():
