@@ -181,12 +181,18 @@ def cost_gap(J_admm, J_ipopt) -> np.ndarray:
 
 
 def kernels() -> set:
-    """The profile keys (file, line, name) of the compiled core's numba kernels (cProfile sees a dispatcher call as its
-    Python function's)."""
+    """The profile keys (file, line, name) of the compiled core's numba kernels: cProfile sees a dispatcher call as its
+    Python function's, and a call of its compiled entry point (planner.jit_admm.typed_call) as a built-in method's."""
     from planner import daqp_qp, jit_admm, jit_rollout, jit_zstep
 
     funcs = [f.py_func for m in (daqp_qp, jit_admm, jit_rollout, jit_zstep) for f in vars(m).values() if hasattr(f, "py_func")]
-    return {(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
+    return ({(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
+            | {("~", 0, f"<built-in method {f.__module__}.{f.__name__}>") for f in funcs})
+
+
+def kernel_name(key) -> str:
+    """The function name of a kernel's profile key (kernels)."""
+    return key[2].removesuffix(">").rsplit(".", 1)[-1] if key[0] == "~" else key[2]
 
 
 def part(key, compiled=frozenset()) -> str:
@@ -195,7 +201,7 @@ def part(key, compiled=frozenset()) -> str:
     file, _, name = key
     if key in compiled:
         return {"admm_loops": "ADMM solve, one compiled call (numba + DAQP)",
-                "solve": "DAQP solves called from Python"}.get(name, "compiled kernels (numba)")
+                "solve": "DAQP solves called from Python"}.get(kernel_name(key), "compiled kernels (numba)")
     if file == "~":  # a C function: name it by the extension it belongs to
         return next((lib for lib in ("onnxruntime", "osqp", "daqp", "torch") if lib in name), "numpy / builtins")
     if "site-packages/" in file:
@@ -224,9 +230,9 @@ def profile(step, src, s_of, states) -> tuple[dict, dict]:
             calls["onnxruntime calls"] += n / len(states)
         if key[0] == "~" and "solve" in key[2] and "osqp" in key[2]:
             calls["OSQP solves"] += n / len(states)
-        if key in compiled and key[2] == "admm_loops":
+        if key in compiled and kernel_name(key) == "admm_loops":
             calls["compiled ADMM calls"] += n / len(states)
-        if key in compiled and key[2] == "solve":
+        if key in compiled and kernel_name(key) == "solve":
             calls["DAQP solves called from Python"] += n / len(states)
     return dict(sorted(ms.items(), key=lambda kv: -kv[1])), dict(calls)
 

@@ -98,7 +98,7 @@ def test_an_unexpected_error_in_a_step_is_a_fallback_with_its_reason(monkeypatch
 
     monkeypatch.setattr(source, "jacobian", broken)
     monkeypatch.setattr(jit_rollout, "predicted", broken)  # the compiled core's own rollout of cv (mpc.admm.core=compiled)
-    monkeypatch.setattr(jit_admm, "admm_loops", broken)  # and its one-call ADMM solves
+    monkeypatch.setattr(jit_admm, "compiled_solves", broken)  # and its one-call ADMM solves
     for w in (None, warm):
         r = step(s, obs, source, w)
         assert r.reason == "fallback" and r.fallback.startswith("step error (ValueError: matmul: size 80 is different from 30)")

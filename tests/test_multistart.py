@@ -7,7 +7,7 @@ from test_surrogate import smooth_student
 
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner import jit_admm, mpc, step
+from planner import jit_admm, jit_linalg, mpc, step
 from planner.gradients import ExactLocal
 from planner.setup import make
 
@@ -50,9 +50,9 @@ def _zstep():
 
 
 def _counted(monkeypatch):
-    """A list that grows by one at each call of the compiled multi-start kernel."""
-    calls, loops = [], jit_admm.admm_loops
-    monkeypatch.setattr(jit_admm, "admm_loops", lambda *a: calls.append(len(a[4].Delta)) or loops(*a))
+    """A list that grows by the number of solves at each call of the compiled multi-start solve."""
+    calls, solves = [], jit_admm.compiled_solves
+    monkeypatch.setattr(jit_admm, "compiled_solves", lambda batch: calls.append(len(batch)) or solves(batch))
     return calls
 
 
@@ -98,8 +98,25 @@ def test_a_source_the_core_does_not_run_and_a_failed_joint_call_take_the_one_by_
     starts = s.strategy.candidates(s, obs, warm, cv)
     alone = _alone(s, obs, cv, starts, zstep)
     del calls[:]
-    counted = jit_admm.admm_loops
-    fail_once = lambda *a: (calls.append("failed"), monkeypatch.setattr(jit_admm, "admm_loops", counted))[0] and 1 / 0
-    monkeypatch.setattr(jit_admm, "admm_loops", fail_once)
+    counted = jit_admm.compiled_solves
+    fail_once = lambda batch: (calls.append("failed"), monkeypatch.setattr(jit_admm, "compiled_solves", counted))[0] and 1 / 0
+    monkeypatch.setattr(jit_admm, "compiled_solves", fail_once)
     assert all(_same(a, b) for a, b in zip(step.solve_all(s, obs, cv, starts, zstep), alone))
     assert calls == ["failed", 1, 1, 1]  # then each start in a call of its own
+
+
+def test_a_kernel_called_through_its_entry_point_gives_its_result_and_no_two_numba_types_share_an_entry():
+    from numba import typeof
+    from numba.typed import List
+
+    M, x = np.arange(6.0).reshape(2, 3), np.array([1.0, -2.0, 0.5])
+    assert np.array_equal(jit_admm.typed_call(jit_linalg.matvec, M, x), M @ x)  # typed by numba, the entry kept
+    assert np.array_equal(jit_admm.typed_call(jit_linalg.matvec, 2 * M, x), 2 * M @ x)  # through the kept entry
+    readonly = x.copy()
+    readonly.flags.writeable = False
+    typed_list = List([x])
+    samples = [x, np.asfortranarray(M), M, M[:, ::2], readonly, x.astype(np.float32), np.zeros(3, bool), 1, 1.0, True,
+               np.float64(1.0), (x, 1), (1, x), jit_admm.Stop(1, 1.0, 1.0), (1, 1.0, 1.0), typed_list, List([M])]
+    for a in samples:
+        for b in samples:
+            assert jit_admm.structure(a) != jit_admm.structure(b) or typeof(a) == typeof(b), (a, b)  # one entry, one type
