@@ -276,7 +276,8 @@ def typed_call(kernel, *args):
     key = (kernel, structure(args))
     if key not in ENTRIES:
         out = kernel(*args)  # typed, and compiled or loaded from numba's cache, as any call
-        ENTRIES[key] = kernel.overloads[tuple(map(kernel.typeof_pyval, args))].entry_point
+        compiled = kernel.overloads.get(tuple(map(kernel.typeof_pyval, args)))  # None: numba converted the arguments
+        ENTRIES[key] = kernel if compiled is None else compiled.entry_point
         return out
     return ENTRIES[key](*args)
 
