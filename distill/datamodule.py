@@ -17,17 +17,19 @@ class WindowData(L.LightningDataModule):
 
     group_batch = 0  # branch groups per training batch
 
-    def __init__(self, dataset_dir, batch_size):
-        """dataset_dir: a make-dataset folder; batch_size: training batch (validation uses 4x)."""
+    def __init__(self, dataset_dir, batch_size, fraction=1.0):
+        """dataset_dir: a make-dataset folder; batch_size: training batch (validation uses 4x); fraction: the share of
+        the training split's episodes trained on (the first ones, so a smaller share is a subset of a larger)."""
         super().__init__()
-        self.dataset_dir, self.batch_size = dataset_dir, batch_size
+        self.dataset_dir, self.batch_size, self.fraction = dataset_dir, batch_size, float(fraction)
         self.splits = {}
 
     def setup(self, stage=None):
-        """Load (and label) both splits once."""
+        """Load (and label) both splits once, the training split cut to `fraction` of its episodes."""
         for split in ("train", "val"):
             if split not in self.splits:
-                self.splits[split] = self.tensors(dataset.load(self.dataset_dir, split))
+                arrays = dataset.load(self.dataset_dir, split)
+                self.splits[split] = self.tensors(first_episodes(arrays, self.fraction) if split == "train" else arrays)
 
     def tensors(self, arrays):
         """The split's training tensors: the recorded window and next positions."""
@@ -50,6 +52,13 @@ class WindowData(L.LightningDataModule):
         return DataLoader(self.splits["val"], batch_size=4 * self.batch_size)
 
 
+def first_episodes(arrays: dict, fraction: float) -> dict:
+    """The windows of a split's first round(fraction x episodes) episodes (at least one), every array cut alike."""
+    episodes = np.unique(arrays["episode"])
+    keep = np.isin(arrays["episode"], episodes[:max(1, round(fraction * len(episodes)))])
+    return {k: v[keep] for k, v in arrays.items()}
+
+
 class SequenceData(WindowData):
     """Train/val windows with the recorded futures of their run for a multi-step rollout loss: (window, ego future
     (H, 2), others' future (H, N, 2), mask (H,)); where the run ends early the ego continues at constant velocity
@@ -57,10 +66,11 @@ class SequenceData(WindowData):
     same past under the episode's own and its counterfactual egos' futures, padded, with a member mask). Windows whose
     recorded future has another car braking harder than hard_braking are drawn hard_weight times as often."""
 
-    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight):
+    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, fraction=1.0):
         """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only); contrast_groups:
-        branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight (-, 1: uniform)."""
-        super().__init__(dataset_dir, batch_size)
+        branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight (-, 1: uniform); fraction: as
+        WindowData's."""
+        super().__init__(dataset_dir, batch_size, fraction)
         self.horizon, self.group_batch = horizon, contrast_groups
         self.hard_braking, self.hard_weight = float(hard_braking), float(hard_weight)  # > 0: core.validate
 

@@ -60,3 +60,23 @@ def test_the_oracle_row_drives_the_interactive_step_with_the_world_as_predictor_
     with pytest.raises(UserError, match=r"results_preset.oracle_episodes=3: the oracle row drives the headline's first "
                                         r"worlds, and it has 2"):
         tiny_plan(tmp_path, "results_preset.oracle_episodes=3")
+
+
+def test_a_teacher_trained_on_a_fraction_of_the_data_sees_the_first_episodes_windows_alone(tiny_dataset):
+    import numpy as np
+
+    from core import validate
+    from data import dataset
+    from distill.datamodule import SequenceData
+
+    train = dataset.load(tiny_dataset, "train")
+    episodes = sorted(set(train["episode"].tolist()))
+    first = set(episodes[: round(0.5 * len(episodes))])
+    assert 0 < len(first) < len(episodes)
+    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, fraction=0.5)
+    data.setup()
+    X = data.splits["train"].tensors[0].numpy()
+    np.testing.assert_array_equal(X, train["X"][[e in first for e in train["episode"].tolist()]])
+    assert len(data.splits["val"]) == len(dataset.load(tiny_dataset, "val")["X"])  # validation: every episode
+    with pytest.raises(UserError, match=r"^model.data.fraction=0: must be a number in \(0, 1\]$"):
+        validate.check(compose_cfg("distill", ["model.data.fraction=0"]), "distill")
