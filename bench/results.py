@@ -46,8 +46,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from bench import breakdown
-from bench.results_plan import ORACLE, build_plan, dense_sources, label, swept, with_options
-from bench.results_plots import accuracy_plot, bar_plot, braking_plot, cooperation_plot
+from bench.results_plan import INTERACTIVE, ORACLE, build_plan, dense_sources, label, swept, variants, with_options
+from bench.results_plots import accuracy_plot, bar_plot, braking_plot, cooperation_plot, fidelity_plot
 from bench.results_tables import (
     GRADIENT_ROWS,
     beaten,
@@ -62,11 +62,14 @@ from bench.results_tables import (
     over_trainings,
     paired_t_merge,
     pct,
+    rank_correlation,
     rate,
     read_ceiling,
     read_episodes,
+    size,
     stream,
     sweep_table,
+    world_hits,
 )
 from core import validate
 from core.jobs import CONF_DIR, console, guarded, job_config, mlflow_run, writable
@@ -80,6 +83,7 @@ GRADIENTS = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err", "rea
              "ramp_react_rel_err")
 INTERACTION = ("react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac", "brake_corr",
                "brake_auc")
+FIDELITY = ("brake_auc", "react_corr")  # the interaction benchmark's scores the fidelity figure ranks predictors by
 SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling", "blind": "best fixed strategy"}  # the ceiling's
 # searches and their row names; the dense ceiling's best fixed strategy only with results_preset.blind_episodes > 0
 
@@ -204,13 +208,13 @@ def cooperation(r: Report) -> list[dict]:
         return []
     seeds = set(range(r.cfg.planner_seed, r.cfg.planner_seed + n))  # mixed: the headline's first n worlds
     first = r.seeds[0]
-    rates = {}
+    swept_rows, rates = with_options(r.p.sources, r.p.mpc_options), {}
     for c in levels:
         key, worlds = ("dense", read_ceiling(r.work, "dense")) if c == "mixed" else (swept(c), read_ceiling(r.work, "dense", c))
         for k, name in list(SEARCHES.items())[:2]:
             rates.setdefault(name, {})[c] = rate([w[f"{k}_courteous"] for w in worlds if int(w["seed"]) in seeds])
         for (sc, row, training), folder in r.batches.items():
-            if sc == key and training in (None, first) and row != label("oracle", ORACLE):  # it drives the headline alone
+            if sc == key and training in (None, first) and row in swept_rows:  # not the oracle's, nor the fidelity rows
                 for m in methods(folder):
                     hits = [e["courteous"] for e in read_episodes(folder, m) if int(e["seed"]) in seeds]
                     rates.setdefault(f"{row} {m.upper()}", {})[c] = rate(hits)
@@ -244,6 +248,43 @@ def interaction(r: Report) -> dict:
     table = markdown(["source", *INTERACTION], [[s, *(fmt(v[k][0], ".3f", *v[k][1:]) for k in INTERACTION)]
                                                 for s, v in r.interaction.items()])
     return {"table": "\n".join(table)}
+
+
+def fidelity(r: Report) -> list[dict]:
+    """Better prediction, better planning: each fidelity row's courteous rate and t_merge on the dense worlds (its
+    batches over trainings) against its predictor's interaction fidelity, Spearman's rank correlation of each score with
+    the courteous rate over the rows the benchmark scored, its interval a bootstrap over worlds; the figure. None
+    without fidelity rows."""
+    scores = {label(s, INTERACTIVE): r.interaction[s] for s in r.p.fidelity_sources}
+    scores |= {label(v.name, INTERACTIVE): over_trainings([r.out[f"evaluate-interaction {v.name}"][v.model]], INTERACTION)
+               for v in variants(r.p)}
+    if not scores:
+        return []
+    rows = r.batch_rows("dense", scores)
+    episodes = {name: [e for (sc, s, _), f in r.batches.items() if sc == "dense" and s == name for e in read_episodes(f, "admm")]
+                for name in scores}
+    seeds = sorted({int(e["seed"]) for eps in episodes.values() for e in eps})
+    rhos, n = {}, {}
+    for score in FIDELITY:
+        scored = [name for name in scores if np.isfinite(scores[name][score][0])]
+        hits, counts = world_hits({name: episodes[name] for name in scored}, seeds)
+        rhos[score] = rank_correlation([scores[name][score][0] for name in scored], hits, counts,
+                                       r.cfg.bootstrap.resamples, r.stream("fidelity", score))
+        n[score] = len(scored)
+    oracle = r.dense_rows.get((label("oracle", ORACLE), "admm"))
+    fidelity_plot({name: {**scores[name], "row": rows[name, "admm"]} for name in scores}, rhos, oracle,
+                  r.dest / "fidelity.png")
+    table = markdown(["predictor", "trainings x worlds", *(f"{k} [95% CI]" for k in FIDELITY), "courteous % [95% CI]",
+                      "t_merge steps [95% CI]"],
+                     [[name, size(rows[name, "admm"]), *(fmt(scores[name][k][0], ".3f", *scores[name][k][1:]) for k in FIDELITY),
+                       pct(rows[name, "admm"], "courteous"), ci(rows[name, "admm"], "t_merge")] for name in scores])
+    return [{"episodes": r.p.dense_episodes, "planner_seed": r.cfg.planner_seed, "resamples": r.cfg.bootstrap.resamples,
+             "table": "\n".join(table), "worlds": len(seeds),
+             "rhos": "; ".join(f"{k}: rho = {fmt(rhos[k][0], '.2f', *rhos[k][1:])} over {n[k]} predictors" for k in FIDELITY),
+             "oracle": "" if oracle is None else (
+                 f"The oracle row (`oracle interactive`, the world itself as predictor: courteous {pct(oracle, 'courteous')} % "
+                 f"on the first {oracle['episodes']} of these worlds) is the figure's dashed line and stays out of the "
+                 "correlation: the interaction benchmark cannot score the running world as a predictor.")}]
 
 
 def random_merges(r: Report) -> dict:
@@ -297,9 +338,9 @@ def showcase(r: Report) -> dict:
 
 # the report's sections in order: (name of its block in results_text.md, the function returning its values)
 SECTIONS = [("head", head), ("dense", dense), ("calibration", calibration), ("cooperation", cooperation),
-            ("predictors", predictors),
-            ("gradients", gradients), ("interaction", interaction), ("random", random_merges), ("table2", table2),
-            ("accuracy", accuracy), ("bench", step_time), ("showcase", showcase)]
+            ("predictors", predictors), ("gradients", gradients), ("interaction", interaction), ("fidelity", fidelity),
+            ("random", random_merges), ("table2", table2), ("accuracy", accuracy), ("bench", step_time),
+            ("showcase", showcase)]
 
 
 def texts(path: Path = TEXT) -> dict:

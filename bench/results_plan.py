@@ -1,10 +1,11 @@
 """The job plan of `results` (bench/results.py): which jobs run, in which order, with which overrides, and where each
 writes; the report's sections read the jobs' results by label and the planner batches' folders."""
 import logging
+import shutil
 import time
 from pathlib import Path
 
-from omegaconf import OmegaConf
+from omegaconf import ListConfig, OmegaConf
 
 from bench import ceiling
 from bench.branches import heldout_seeds
@@ -16,9 +17,14 @@ from planner.gradients import available, reads_models
 
 log = logging.getLogger(__name__)
 TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
-SWEEP = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
-         "results_preset.cooperation_episodes": validate.Int(1), "results_preset.oracle_episodes": validate.Int(0)}
+PRESET = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
+          "results_preset.cooperation_episodes": validate.Int(1), "results_preset.oracle_episodes": validate.Int(0),
+          # the oracle reads the running world: the interaction benchmark cannot score it, nor so place it on the figure
+          "results_preset.fidelity_sources": validate.ListOf(validate.OneOf(available(needs_world=False)))}
 ORACLE = ["mpc=interactive", "method=admm", "predictor=oracle"]  # the dense row whose predictor is the world itself
+INTERACTIVE = ["mpc=interactive", "method=admm"]  # the fidelity figure's rows: the interactive step, ADMM alone
+VARIANT = ("name", "model", "overrides")  # the keys of a fidelity variant
+VARIANT_MODELS = ("teacher", "student")
 
 
 class Plan:
@@ -67,8 +73,8 @@ def ceiling_worlds(p) -> dict:
 
 
 def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, models: Path, runs: Path, extra, seed=0,
-                 surrogate=True, iterates=None):
-    """Add to `plan` the teacher, the student and (with `surrogate`) the surrogate trained on dataset_dir (of conf/dataset/
+                 surrogate=True, iterates=None, trained=("teacher", "student")):
+    """Add to `plan` the `trained` models (the teacher, the student) and (with `surrogate`) the surrogate trained on dataset_dir (of conf/dataset/
     option `dataset`) into `models` with training seed `seed`: jobs 'distill <model> <tag>' and 'surrogate <tag>', their
     run folders runs/distill-<model>-<name> and runs/surrogate-<name>; extra: each job's extra overrides by key
     (teacher, student, surrogate). With `iterates` (overrides of a `planner` batch), job 'iterates <tag>' first records
@@ -78,7 +84,7 @@ def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, mo
     from surrogate import cli as surrogate_cli
 
     common = [f"dataset={dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}"]
-    for model in ("teacher", "student"):
+    for model in trained:
         plan.add(f"distill {model} {tag}", train.run, job_config("distill", [
             f"model={model}", *common, f"run_dir={runs / f'distill-{model}-{name}'}", "trainer.enable_progress_bar=false",
             *extra[model]]))
@@ -95,6 +101,44 @@ def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, mo
         *recorded, *extra["surrogate"]]))
 
 
+def variants(p) -> list:
+    """The preset's fidelity_variants, each {name, model: teacher | student, overrides: [distill overrides]} with a name
+    no gradient source or other variant has; one UserError naming the entry otherwise."""
+    taken = set(available())
+    for i, v in enumerate(p.fidelity_variants):
+        where = f"results_preset.fidelity_variants[{i}]"
+        if not hasattr(v, "keys") or set(v.keys()) != set(VARIANT):
+            raise UserError(f"{where}={v}: must be {{name: <folder name>, model: teacher|student, overrides: [...]}}")
+        if not validate.Name().ok(v.name) or " " in v.name or v.name in taken:
+            raise UserError(f"{where}.name={v.name}: must be a folder name without spaces that no gradient source or "
+                            f"other variant has")
+        if v.model not in VARIANT_MODELS:
+            raise UserError(f"{where}.model={v.model}: must be one of {', '.join(VARIANT_MODELS)}")
+        if not isinstance(v.overrides, ListConfig) or not all(isinstance(o, str) for o in v.overrides):
+            raise UserError(f"{where}.overrides={v.overrides}: must be a list of `distill` overrides")
+        taken.add(v.name)
+    return list(p.fidelity_variants)
+
+
+def check_fidelity(p) -> None:
+    """One UserError for a fidelity source the interaction benchmark does not score (its fidelity is that benchmark's)."""
+    missing = [s for s in p.fidelity_sources if s not in p.interaction_sources]
+    if missing:
+        raise UserError(f"results_preset.fidelity_sources: {', '.join(missing)} not in results_preset.interaction_sources "
+                        f"(the figure's fidelity is the interaction benchmark's); add them there")
+
+
+def copy_teacher(models: Path, folder: Path) -> None:
+    """Copy the training's teacher checkpoint into a student variant's models folder, the teacher it distils."""
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(models / "teacher.ckpt", folder / "teacher.ckpt")
+
+
+def variant_models(work: Path, name: str, k) -> Path:
+    """The models folder of fidelity variant `name`, training seed k."""
+    return work / "models" / "variants" / name / f"seed{k}"
+
+
 def build_plan(cfg, work: Path):
     """The preset's jobs (Plan) and the planner batches' output folders {(scenario, row, seed k or None): folder}; the
     cooperation sweep's batches under scenario swept(level), of the first training alone."""
@@ -104,7 +148,9 @@ def build_plan(cfg, work: Path):
     from planner.setup import planner_config
 
     p = cfg.results_preset
-    validate.check(cfg, SWEEP)
+    validate.check(cfg, PRESET)
+    check_fidelity(p)
+    fidelity = variants(p)
     if "mixed" in p.cooperation and p.cooperation_episodes > p.dense_episodes:
         raise UserError(f"results_preset.cooperation_episodes={p.cooperation_episodes}: the sweep's mixed level reads the "
                         f"headline's first worlds, and it has {p.dense_episodes} (results_preset.dense_episodes)")
@@ -118,6 +164,14 @@ def build_plan(cfg, work: Path):
     models = lambda k: work / "models" / f"seed{k}"
     for k in p.training_seeds:
         add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k, iterates=p.iterates)
+    first_seed = p.training_seeds[0]
+    for v in fidelity:  # the graded trainings, first training seed alone; a student variant distils that training's teacher
+        folder = variant_models(work, v.name, first_seed)
+        if v.model == "student":
+            plan.add(f"copy teacher {v.name}", copy_teacher, models(first_seed), folder)
+        add_training(plan, f"{v.name} seed {first_seed}", f"{v.name}-{first_seed}", p.dataset, dataset_dir, folder,
+                     work / "runs", {v.model: [*p[v.model], *v.overrides]}, seed=first_seed, surrogate=False,
+                     trained=(v.model,))
     interaction_cfgs = {}
     for i, k in enumerate(p.training_seeds):
         sources = [s for s in p.interaction_sources if i == 0 or s in TRAINED]  # untrained ones once
@@ -125,6 +179,10 @@ def build_plan(cfg, work: Path):
             f"dataset={p.dataset}", f"models_dir={models(k)}", f"out_dir={work / 'interaction' / f'seed{k}'}",
             f"sources=[{','.join(sources)}]", *p.interaction])
         plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
+    for v in fidelity:
+        plan.add(f"evaluate-interaction {v.name}", interaction.run, job_config("evaluate_interaction", [
+            f"dataset={p.dataset}", f"models_dir={variant_models(work, v.name, first_seed)}",
+            f"out_dir={work / 'interaction' / v.name}", f"sources=[{v.model}]", *p.interaction]))
     check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
     options = mpc_overrides(p.mpc_options)
     every, first = list(p.training_seeds), list(p.training_seeds[:1])
@@ -133,16 +191,21 @@ def build_plan(cfg, work: Path):
         [(sc, s, p.table2_episodes, extra, every) for sc in p.scenarios for extra in options for s in p.table2_sources] + \
         [(swept(c), s, p.cooperation_episodes, extra, first) for c in fresh_levels(p) for extra in options for s in p.sources] + \
         [("dense", "oracle", p.oracle_episodes, ORACLE, first)] * (p.oracle_episodes > 0)
+    # the fidelity figure's rows: the headline's `<source> interactive` where it runs, else a batch of their own on its worlds
+    runs += [r for r in (("dense", s, p.dense_episodes, INTERACTIVE, every) for s in p.fidelity_sources) if r not in runs]
+    runs += [("dense", v.name, p.dense_episodes, INTERACTIVE, first) for v in fidelity]
+    model_of = {v.name: v.model for v in fidelity}  # a variant's row: its model's gradient source, from its own folder
     starts = {}  # {batches' scenario key: their per-step CSVs' templates}, the ceiling's recorded starts
     for key, source, episodes, extra, trainings in runs:
         scenario, *level = key.split(" cooperation=")
-        for k in trainings if source in TRAINED else [None]:
+        for k in trainings if source in TRAINED or source in model_of else [None]:
             row = label(source, extra)
             folder = work / "planner" / key.replace(" cooperation=", "_") / row / (f"seed{k}" if k is not None else "untrained")
             batches[key, row, k] = folder
-            overrides = [f"gradients={source}", "method=both", *extra, *(f"scenario.cooperation={c}" for c in level),
-                         f"episodes={episodes}", f"seed={cfg.planner_seed}",
-                         f"models_dir={models(p.training_seeds[0] if k is None else k)}", f"out_dir={folder}", "plots=false",
+            trained = variant_models(work, source, k) if source in model_of else models(p.training_seeds[0] if k is None else k)
+            overrides = [f"gradients={model_of.get(source, source)}", "method=both", *extra,
+                         *(f"scenario.cooperation={c}" for c in level), f"episodes={episodes}", f"seed={cfg.planner_seed}",
+                         f"models_dir={trained}", f"out_dir={folder}", "plots=false",
                          f"n_jobs={cfg.n_jobs}", f"backend={cfg.backend}", f"ray.address={cfg.ray.address or 'null'}", *p.planner]
             job = planner_config(scenario, overrides)
             plan.add(f"planner {key} {row}" + (f" seed {k}" if k is not None else ""), planner_cli.run, job)

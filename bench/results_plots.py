@@ -108,3 +108,37 @@ def cooperation_plot(rates: dict, levels, path: Path):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def fidelity_plot(points: dict, rhos: dict, oracle: dict | None, path: Path):
+    """Courteous-merge rate (%) and t_merge (steps) against interaction fidelity, a column per score (brake_auc,
+    react_corr): a point per predictor ({name: {score: (mean, lo, hi), "row": outcomes row}}) with its 95% intervals
+    both ways; Spearman's rho of each score ({score: (rho, lo, hi)}) in its title; the oracle's rate (a row, or None),
+    which the benchmark cannot score, as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(rhos), figsize=(5.2 * len(rhos), 7.5), squeeze=False)
+    colors = plt.cm.tab10(np.arange(len(points)) % 10)
+    for j, (score, (rho, lo, hi)) in enumerate(rhos.items()):
+        for i, (key, scale, ylabel) in enumerate((("courteous", 100.0, "courteous merges (%)"),
+                                                  ("t_merge", 1.0, "t_merge (steps of 0.2 s), courteous merges"))):
+            ax = axes[i, j]
+            for c, (name, p) in zip(colors, points.items()):
+                x, (y, ylo, yhi) = p[score], (scale * p["row"][key + e] for e in ("", "_lo", "_hi"))
+                ax.errorbar(x[0], y, xerr=np.nan_to_num([[x[0] - x[1]], [x[2] - x[0]]]),
+                            yerr=np.nan_to_num([[y - ylo], [yhi - y]]), fmt="o", capsize=3, color=c, label=name)
+                ax.annotate(name, (x[0], y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+            if oracle is not None and i == 0:
+                ax.axhline(100 * oracle["courteous"], color="k", ls="--", lw=1,
+                           label=f"oracle interactive ({oracle['episodes']} worlds; not scored)")
+            ax.set(xlabel=f"{score} (interaction benchmark)", ylabel=ylabel)
+            ax.grid(alpha=0.3)
+        axes[0, j].set_title(f"Spearman's rho = {compare.fmt(rho, '.2f', lo, hi)} (95% CI over worlds)", fontsize=9)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("the interactive step: planning outcome against interaction fidelity, 95% CI")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

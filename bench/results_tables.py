@@ -4,10 +4,12 @@ Markdown cells and tables that show them.
 Every bootstrap draws from its own random stream, spawned from `bootstrap.seed` by the names of its table and row
 (`stream`), so adding, removing or reordering a section or a row moves no other interval."""
 import csv
+import warnings
 import zlib
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import spearmanr
 
 from bench import breakdown
 from core import stats
@@ -77,6 +79,39 @@ def paired_t_merge(worlds: list[dict], episodes: list[dict], resamples: int, rng
     pairs = np.array([(e["t_merge"], best[int(e["seed"])]) for e in episodes if e["courteous"] and int(e["seed"]) in best])
     ratio = stats.paired_ratio(pairs[:, 0], pairs[:, 1], resamples, rng) if len(pairs) else (float("nan"),) * 3
     return {"ratio": ratio[0], "ratio_lo": ratio[1], "ratio_hi": ratio[2], "pairs": len(pairs)}
+
+def world_hits(rows: dict, seeds) -> tuple[np.ndarray, np.ndarray]:
+    """(hits, counts), each (rows, worlds): per row ({name: its episodes}) and world seed, the courteous merges and the
+    episodes (one per training that finished it)."""
+    col = {int(s): j for j, s in enumerate(seeds)}
+    hits, counts = np.zeros((len(rows), len(col))), np.zeros((len(rows), len(col)))
+    for i, eps in enumerate(rows.values()):
+        for e in eps:
+            hits[i, col[int(e["seed"])]] += e["courteous"]
+            counts[i, col[int(e["seed"])]] += 1
+    return hits, counts
+
+
+def rank_correlation(x, hits, counts, resamples: int, rng) -> tuple[float, float, float]:
+    """(rho, lo, hi): Spearman's rank correlation between x (a value per row) and the rows' rates, hits over counts
+    ((rows, worlds) as world_hits), with its 95% percentile-bootstrap interval over worlds (core.stats.bootstrap: the
+    worlds drawn with replacement, every row's rate recomputed on them, rho recomputed); a resample where a side is
+    constant has no rho and is left out; nan with fewer than two rows."""
+    x, hits, counts = np.asarray(x, float), np.asarray(hits, float), np.asarray(counts, float)
+    if len(x) < 2:
+        return (float("nan"),) * 3
+
+    def rho(worlds):
+        with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+            warnings.simplefilter("ignore")  # a constant side: scipy warns and returns nan, which is the answer
+            return float(spearmanr(x, hits[:, worlds].sum(1) / counts[:, worlds].sum(1)).statistic)
+
+    worlds = np.arange(hits.shape[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # every resample without a rho: nanpercentile warns and gives nan
+        lo, hi = stats.bootstrap([worlds], rho, resamples, rng)
+    return rho(worlds), float(lo), float(hi)
+
 
 def outcomes(per_training: list[list[dict]], resamples: int, rng) -> dict:
     """One table row from the episodes of each training: rates with Wilson intervals, means with bootstrap intervals."""

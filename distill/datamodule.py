@@ -148,10 +148,11 @@ class DistillData(WindowData):
     and its counterfactual egos' futures) with the teacher's rollouts under each."""
 
     def __init__(self, dataset_dir, batch_size, teacher, perturbed_copies, perturb, projections, seed, horizon,
-                 rollout_groups):
+                 rollout_groups, fraction=1.0):
         """teacher: a predictor with phi_vjp; perturb: planner_like's ranges; projections: cotangents v per window;
-        horizon: steps of the teacher's branch rollouts; rollout_groups: branch groups per training batch (0: none)."""
-        super().__init__(dataset_dir, batch_size)
+        horizon: steps of the teacher's branch rollouts; rollout_groups: branch groups per training batch (0: none);
+        fraction: as WindowData's."""
+        super().__init__(dataset_dir, batch_size, fraction)
         self.teacher, self.perturbed_copies, self.perturb, self.projections = teacher, perturbed_copies, dict(perturb), projections
         self.horizon, self.group_batch = horizon, rollout_groups
         self.rng = np.random.default_rng(seed)  # one stream for both splits, train first

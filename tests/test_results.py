@@ -74,7 +74,7 @@ def tiny(tmp_path_factory):
 
 def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
     out, work, md, _ = tiny
-    for f in ("b_imposed.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "accuracy_vs_speed.png",
+    for f in ("b_imposed.png", "fidelity.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "accuracy_vs_speed.png",
               "snapshots_admm.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG" and f in md
     assert (out / "merge_admm.gif").read_bytes()[:3] == b"GIF"
@@ -148,7 +148,7 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
     # every planner run was one of the ceiling's starts: none beats it, and the report says how often the search alone sufficed
     steps = sorted((work / "planner" / "dense").glob("*/*/steps/*.csv"))
     assert beat == set() and "planner beat the ceiling on 0 worlds of 2" in md
-    assert [w["starts"] for w in dense] == [sum(f.stem.endswith(f"_{w['seed']:.0f}") for f in steps) for w in dense] == [7, 6]
+    assert [w["starts"] for w in dense] == [sum(f.stem.endswith(f"_{w['seed']:.0f}") for f in steps) for w in dense] == [9, 8]
     assert cell(md, "Dense traffic (headline)", "oracle interactive", "ADMM", 2) == "1 x 1"  # the oracle row: the first world
     reached = sum(w["search_courteous"] == w["ceiling_courteous"] and w["search_t_merge"] == w["ceiling_t_merge"] for w in dense)
     assert f"already reached the final value on {reached} of the 2 worlds" in md
@@ -252,3 +252,59 @@ def test_tiny_cooperation_sweep_shows_each_levels_ceiling_and_rows_on_the_same_w
         assert numbers(shown.split("|")[1:-1][i]) == pytest.approx(rate_cell([e["courteous"] for e in eps]), abs=0.051)
     stubborn = list(csv.DictReader(open(work / "ceiling" / "dense_stubborn" / "ceiling_dense.csv")))
     assert [w["ceiling_courteous"] for w in stubborn] == [w["never_yield_courteous"] for w in stubborn]  # nobody yields
+
+
+def test_spearman_rank_correlation_and_its_world_bootstrap_match_a_direct_computation():
+    from bench.results_tables import rank_correlation, world_hits
+
+    fidelity = [0.50, 0.87, 0.91, 0.96]  # cv, analytic, teacher, student: no ties
+    courteous = {"cv": [0, 0, 0, 1, 0, 0], "analytic": [1, 0, 0, 1, 0, 1], "teacher": [1, 1, 0, 1, 1, 0],
+                 "student": [1, 1, 1, 1, 0, 1]}  # per world 2000000..2000005, one training
+    rows = {name: [{"seed": 2000000 + j, "courteous": float(c)} for j, c in enumerate(v)] for name, v in courteous.items()}
+    rows["student"].append({"seed": 2000002, "courteous": 0.0})  # a second training on one world: 2 episodes there
+    hits, counts = world_hits(rows, range(2000000, 2000006))
+    assert counts.sum() == 25 and hits[3, 2] == 1 and counts[3, 2] == 2
+
+    def spearman(x, y):  # Pearson's correlation of mean ranks (ties share theirs); nan for a constant side
+        rank = lambda v: np.array([sum(u < w for u in v) + (sum(u == w for u in v) + 1) / 2 for w in v])
+        rx, ry = rank(x), rank(y)
+        if rx.std() == 0 or ry.std() == 0:
+            return np.nan
+        return float(((rx - rx.mean()) * (ry - ry.mean())).mean() / (rx.std() * ry.std()))
+
+    rates = lambda worlds: [sum(e["courteous"] for e in rows[n] if e["seed"] - 2000000 in worlds)
+                            / sum(e["seed"] - 2000000 in worlds for e in rows[n]) for n in rows]
+    assert rates(range(6)) == pytest.approx([1 / 6, 0.5, 4 / 6, 5 / 7])
+    rho, lo, hi = rank_correlation(fidelity, hits, counts, 400, np.random.default_rng(3))
+    assert rho == pytest.approx(spearman(fidelity, rates(range(6)))) == pytest.approx(1.0)
+    draws, rng = [], np.random.default_rng(3)
+    for _ in range(400):  # core.stats.bootstrap's draws: the one group (all worlds), then the worlds with replacement
+        rng.integers(1, size=1)
+        worlds = list(rng.integers(6, size=6))  # a world drawn twice counts twice
+        draws.append(spearman(fidelity, [sum(hits[i, w] for w in worlds) / sum(counts[i, w] for w in worlds)
+                                         for i in range(4)]))
+    assert [lo, hi] == pytest.approx(np.nanpercentile(draws, [2.5, 97.5]))
+    assert lo < rho == hi == pytest.approx(1.0)
+    assert np.isnan(rank_correlation([0.5], hits[:1], counts[:1], 10, np.random.default_rng(0))[0])
+    assert np.isnan(rank_correlation(fidelity, 0 * hits, counts, 10, np.random.default_rng(0))).all()  # nobody merges
+
+
+def test_tiny_fidelity_section_puts_each_predictor_s_interactive_batch_beside_its_interaction_scores(tiny):
+    _, work, md, _ = tiny
+    text = section(md, "Fidelity against outcome")
+    assert "![fidelity against outcome](fidelity.png)" in text
+    rows = {}
+    for source in ("cv", "student"):  # tiny's fidelity_sources: the interactive step on the headline's 2 worlds
+        name = f"{source} interactive"
+        eps = [e for f in (work / "planner" / "dense" / name).glob("*") for e in episodes_csv(str(f), "admm")]
+        assert [e["seed"] for e in eps] == [2000000, 2000001]
+        assert numbers(cell(md, "Fidelity against outcome", name, "1 x 2", 4)) == pytest.approx(
+            rate_cell([e["courteous"] for e in eps]), abs=0.051)
+        shown = next(line for line in section(md, "Interaction fidelity").splitlines() if line.startswith(f"| {source} |"))
+        for column, score in ((2, "brake_auc"), (3, "react_corr")):
+            mine = cell(md, "Fidelity against outcome", name, "1 x 2", column)
+            assert mine == shown.split("|")[1:-1][{"brake_auc": 8, "react_corr": 1}[score]].strip(), score
+        rows[name] = (float(numbers(shown.split("|")[1:-1][8])[0]), np.mean([e["courteous"] for e in eps]))
+    (x1, y1), (x2, y2) = rows.values()  # two predictors: rho is the sign of their order's agreement, none for a tie
+    rho = "-" if x1 == x2 or y1 == y2 else f"{np.sign((x2 - x1) * (y2 - y1)):.2f}"
+    assert f"brake_auc: rho = {rho}" in text and "over 2 predictors" in text

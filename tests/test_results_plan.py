@@ -80,3 +80,45 @@ def test_a_teacher_trained_on_a_fraction_of_the_data_sees_the_first_episodes_win
     assert len(data.splits["val"]) == len(dataset.load(tiny_dataset, "val")["X"])  # validation: every episode
     with pytest.raises(UserError, match=r"^model.data.fraction=0: must be a number in \(0, 1\]$"):
         validate.check(compose_cfg("distill", ["model.data.fraction=0"]), "distill")
+
+
+VARIANTS = ("results_preset.fidelity_variants=[{name: teacher_half, model: teacher, overrides: ['model.data.fraction=0.5']},"
+            "{name: student_narrow, model: student, overrides: ['model=student']}]")
+
+
+def test_fidelity_rows_reuse_the_headline_s_interactive_batches_and_graded_variants_train_and_plan_in_their_own_folders(tmp_path):
+    labels, jobs, batches = tiny_plan(tmp_path, "results_preset.mpc_options=[courteous,interactive]", VARIANTS)
+    planned = [label for label in labels if label.startswith("planner dense ")]
+    assert len(planned) == len(set(planned))  # `cv interactive` and `student interactive`: the headline's batches alone
+    assert {"planner dense cv interactive", "planner dense student interactive seed 0"} <= set(planned)
+    teacher = jobs["distill teacher teacher_half seed 0"]
+    assert (teacher.model.name, teacher.model.data.fraction, teacher.trainer.max_epochs) == ("teacher", 0.5, 2)  # tiny's too
+    assert teacher.models_dir == str(tmp_path / "models" / "variants" / "teacher_half" / "seed0")
+    student = jobs["distill student student_narrow seed 0"]
+    assert list(student.model.net.hidden) == [64, 64] and student.models_dir.endswith("variants/student_narrow/seed0")
+    assert labels.index("copy teacher student_narrow") < labels.index("distill student student_narrow seed 0")
+    assert "distill teacher student_narrow seed 0" not in labels and "surrogate student_narrow seed 0" not in labels
+    bench = jobs["evaluate-interaction student_narrow"]
+    assert list(bench.sources) == ["student"] and bench.models_dir == student.models_dir
+    for name, model in (("teacher_half", "teacher"), ("student_narrow", "student")):
+        job = jobs[f"planner dense {name} interactive seed 0"]
+        assert (job.gradients.name, job.mpc.name, list(job.method), job.episodes) == (model, "interactive", ["admm"], 2)
+        assert job.models_dir == jobs[f"distill {model} {name} seed 0"].models_dir
+        assert ("dense", f"{name} interactive", 0) in batches
+        assert labels.index(f"planner dense {name} interactive seed 0") < labels.index("ceiling dense")
+
+
+@pytest.mark.parametrize("override, message", [
+    ("results_preset.fidelity_sources=[oracle]", r"^results_preset.fidelity_sources=\['oracle'\]: must be"),
+    ("results_preset.fidelity_sources=[teacher]", r"^results_preset.fidelity_sources: teacher not in "
+                                                  r"results_preset.interaction_sources"),
+    ("results_preset.fidelity_variants=[{name: cv, model: teacher, overrides: []}]",
+     r"^results_preset.fidelity_variants\[0\].name=cv: must be a folder name without spaces that no gradient source"),
+    ("results_preset.fidelity_variants=[{name: t5, model: surrogate, overrides: []}]",
+     r"^results_preset.fidelity_variants\[0\].model=surrogate: must be one of teacher, student$"),
+    ("results_preset.fidelity_variants=[{name: t5, model: teacher}]", r"^results_preset.fidelity_variants\[0\]=.*: must be "),
+])
+def test_a_bad_fidelity_preset_key_is_one_line_naming_it(tmp_path, override, message):
+    with pytest.raises(UserError, match=message) as e:
+        tiny_plan(tmp_path, override)
+    assert "\n" not in str(e.value)
