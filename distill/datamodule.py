@@ -17,7 +17,7 @@ class WindowData(L.LightningDataModule):
 
     group_batch = 0  # branch groups per training batch
 
-    def __init__(self, dataset_dir, batch_size, fraction=1.0):
+    def __init__(self, dataset_dir, batch_size, fraction):
         """dataset_dir: a make-dataset folder; batch_size: training batch (validation uses 4x); fraction: the share of
         the training split's episodes trained on (the first ones, so a smaller share is a subset of a larger)."""
         super().__init__()
@@ -66,7 +66,7 @@ class SequenceData(WindowData):
     same past under the episode's own and its counterfactual egos' futures, padded, with a member mask). Windows whose
     recorded future has another car braking harder than hard_braking are drawn hard_weight times as often."""
 
-    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, fraction=1.0):
+    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, fraction):
         """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only); contrast_groups:
         branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight (-, 1: uniform); fraction: as
         WindowData's."""
@@ -148,7 +148,7 @@ class DistillData(WindowData):
     and its counterfactual egos' futures) with the teacher's rollouts under each."""
 
     def __init__(self, dataset_dir, batch_size, teacher, perturbed_copies, perturb, projections, seed, horizon,
-                 rollout_groups, fraction=1.0):
+                 rollout_groups, fraction):
         """teacher: a predictor with phi_vjp; perturb: planner_like's ranges; projections: cotangents v per window;
         horizon: steps of the teacher's branch rollouts; rollout_groups: branch groups per training batch (0: none);
         fraction: as WindowData's."""
