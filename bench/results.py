@@ -280,7 +280,8 @@ def fidelity(r: Report) -> list[dict]:
                        pct(rows[name, "admm"], "courteous"), ci(rows[name, "admm"], "t_merge")] for name in scores])
     return [{"episodes": r.p.dense_episodes, "planner_seed": r.cfg.planner_seed, "resamples": r.cfg.bootstrap.resamples,
              "table": "\n".join(table), "worlds": len(seeds),
-             "rhos": "; ".join(f"{k}: rho = {fmt(rhos[k][0], '.2f', *rhos[k][1:])} over {n[k]} predictors" for k in FIDELITY),
+             "rhos": "; ".join(f"{k}: rho = {fmt(rhos[k][0], '.2f', *rhos[k][1:])} over {n[k]} predictors" for k in FIDELITY)
+             + " ('-': undefined, every rate or every score equal)" * any(np.isnan(v[0]) for v in rhos.values()),
              "oracle": "" if oracle is None else (
                  f"The oracle row (`oracle interactive`, the world itself as predictor: courteous {pct(oracle, 'courteous')} % "
                  f"on the first {oracle['episodes']} of these worlds) is the figure's dashed line and stays out of the "

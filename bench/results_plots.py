@@ -130,7 +130,8 @@ def fidelity_plot(points: dict, rhos: dict, oracle: dict | None, path: Path):
                 x, (y, ylo, yhi) = p[score], (scale * p["row"][key + e] for e in ("", "_lo", "_hi"))
                 ax.errorbar(x[0], y, xerr=np.nan_to_num([[x[0] - x[1]], [x[2] - x[0]]]),
                             yerr=np.nan_to_num([[y - ylo], [yhi - y]]), fmt="o", capsize=3, color=c, label=name)
-                ax.annotate(name, (x[0], y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+                ax.annotate(name.removesuffix(" interactive"), (x[0], y), textcoords="offset points", xytext=(4, 4),
+                            fontsize=7)
             if oracle is not None and i == 0:
                 ax.axhline(100 * oracle["courteous"], color="k", ls="--", lw=1,
                            label=f"oracle interactive ({oracle['episodes']} worlds; not scored)")
