@@ -10,6 +10,8 @@ braking harder than mpc.b_courtesy. Per source, over every (state, candidate):
   miss         the share of the other merging candidates it accepts as good (why a step forces or collides);
   brake_fa     the share of candidates where nobody truly brakes above 2 m/s^2 that it predicts braking above
                b_courtesy (issue 44's false-alarm rate);
+  fa_unsafe, fa_braking  the share of truly good merges it refuses because it predicts a car inside the safety shape
+               (b_i < 0), and because it predicts braking above b_courtesy (a refusal may have both reasons);
 and per state, the candidate it ranks first (planner.strategy.Interactive.order):
   takes_good   a good merge, on the states where the world has one;
   takes_bad    a merge that is not good.
@@ -51,12 +53,13 @@ def sources(cfg) -> dict:
 
 
 def verdicts(source, s, obs, plans) -> tuple:
-    """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order) of the K candidate plans as `source`
-    judges them."""
+    """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order, unsafe (K,): b_i < 0) of the K
+    candidate plans as `source` judges them."""
     judged = s.strategy.judge(s, obs, source, *plans)
     merges = np.array([j.merge < s.strategy.never(s) for j in judged])
     good = merges & [s.strategy.acceptable(s, j) for j in judged]
-    return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged)
+    unsafe = np.array([j.b_min < 0.0 for j in judged])
+    return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged), unsafe
 
 
 def visited(cfg, driver, seed: int):
@@ -86,12 +89,12 @@ def run(cfg) -> dict:
             s = judges["oracle"][1]
             plans = s.strategy.plans(s, obs, None)[1:4]
             judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
-            true_good, true_merge, true_brake, _ = verdicts(*judges["oracle"], obs, plans)
+            true_good, true_merge, true_brake, _, _ = verdicts(*judges["oracle"], obs, plans)
             for name, (source, s_) in judges.items():
-                good, merges, brake, order = verdicts(source, s_, obs, plans)
+                good, merges, brake, order, unsafe = verdicts(source, s_, obs, plans)
                 per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,
                                         "true_merge": true_merge, "brake": brake, "true_brake": true_brake,
-                                        "first": order[0], "b_c": s_.b_courtesy})
+                                        "first": order[0], "b_c": s_.b_courtesy, "unsafe": unsafe})
     return {name: scores(rows, cfg.resamples, cfg.seed_offset) for name, rows in per_state.items()}
 
 
@@ -100,7 +103,9 @@ def scores(rows, resamples: int, seed: int) -> dict:
     share = lambda x: float(np.mean(x)) if len(x) else float("nan")
     cand = {"false_alarm": [~r["good"][r["true_good"]] for r in rows],
             "miss": [r["good"][r["true_merge"] & ~r["true_good"]] for r in rows],
-            "brake_fa": [r["brake"][r["true_brake"] < FORCED] > r["b_c"] for r in rows]}
+            "brake_fa": [r["brake"][r["true_brake"] < FORCED] > r["b_c"] for r in rows],
+            "fa_unsafe": [r["unsafe"][r["true_good"]] for r in rows],
+            "fa_braking": [r["brake"][r["true_good"]] > r["b_c"] for r in rows]}
     out = {"states": len(rows)}
     for k, groups in cand.items():
         out[k] = share(np.concatenate(groups).astype(float))
@@ -140,11 +145,12 @@ def main(overrides=()) -> dict:
     print(f"{table['oracle']['states']} states that mpc=interactive with {cfg.drive} visits on {cfg.worlds} held-out "
           f"{cfg.scenario.name} worlds (seeds from {cfg.seed_offset}), every {cfg.every}th step; "
           f"{table['oracle']['states_with_good']} have a good merge by the world's verdict; {path}")
-    print("| source | false alarm % | miss % | brake false alarm % | takes a good merge % | takes a bad merge % |")
-    print("|---|---|---|---|---|---|")
+    print("| source | false alarm % | of them unsafe % | for braking % | miss % | brake false alarm % "
+          "| takes a good merge % | takes a bad merge % |")
+    print("|---|---|---|---|---|---|---|---|")
     for name, r in table.items():
-        print(f"| {name} | {pct(r, 'false_alarm')} | {pct(r, 'miss')} | {pct(r, 'brake_fa')} | {pct(r, 'takes_good')} "
-              f"| {pct(r, 'takes_bad')} |")
+        print(f"| {name} | {pct(r, 'false_alarm')} | {pct(r, 'fa_unsafe')} | {pct(r, 'fa_braking')} | {pct(r, 'miss')} "
+              f"| {pct(r, 'brake_fa')} | {pct(r, 'takes_good')} | {pct(r, 'takes_bad')} |")
     return table
 
 

@@ -8,11 +8,13 @@ from bench import verdicts
 def test_the_scores_count_refused_good_merges_accepted_bad_ones_and_the_first_choice():
     row = {"true_good": np.array([True, True, False, False]), "true_merge": np.array([True, True, True, False]),
            "good": np.array([True, False, True, False]), "merges": np.array([True, True, True, False]),
-           "brake": np.array([0.0, 5.0, 0.0, 0.0]), "true_brake": np.array([0.0, 0.0, 5.0, 0.0]), "first": 2, "b_c": 3.0}
+           "brake": np.array([0.0, 5.0, 0.0, 0.0]), "true_brake": np.array([0.0, 0.0, 5.0, 0.0]), "first": 2, "b_c": 3.0,
+           "unsafe": np.array([False, True, False, True])}
     out = verdicts.scores([row], resamples=10, seed=0)
     assert out["false_alarm"] == 0.5  # of the two good merges it refuses the second
     assert out["miss"] == 1.0  # the one merge that is not good, it takes for good
     assert out["brake_fa"] == pytest.approx(1 / 3)  # three candidates brake nobody; it predicts 5 m/s^2 for one
+    assert out["fa_unsafe"] == 0.5 and out["fa_braking"] == 0.5  # it refuses the second as unsafe and for its braking
     assert out["takes_good"] == 0.0 and out["takes_bad"] == 1.0 and out["states_with_good"] == 1
 
 
