@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-zstep interaction batch ceiling results results-full cross-world clean
+.PHONY: demo test bench bench-zstep interaction batch ceiling results results-full cross-world interactive-models clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -85,5 +85,14 @@ results-full: $(STAMP)
 cross-world: $(STAMP)
 	$(BIN)/cross-world
 
+# Predictors for mpc=interactive (issue 44 point 3): the dataset that asks the step's questions (cut-ins, yields
+# followed through, 25-step branches), a teacher fit on 25-step rollouts (the step's horizon), and a student distilled
+# from it, in models/interactive/. Drive them with `planner scenario=dense mpc=interactive
+# gradients=student models_dir=models/interactive`. About 55 minutes on 2 cores (docs/studies.md).
+interactive-models: $(STAMP)
+	$(BIN)/make-dataset dataset=interactive
+	$(BIN)/distill model=teacher dataset=interactive model.epochs=3 models_dir=models/interactive
+	$(BIN)/distill model=student dataset=interactive models_dir=models/interactive
+
 clean:
-	rm -rf outputs multirun mlflow.db mlruns models data/small data/large results/*/
+	rm -rf outputs multirun mlflow.db mlruns models data/small data/large data/interactive results/*/
