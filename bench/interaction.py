@@ -20,7 +20,9 @@ The braking each plan imposes, the hardest deceleration of any other car over T_
 and its choice judge plans by it), is scored per plan (two per pair) against the world's:
   brake_corr  Pearson correlation of predicted and true hardest braking;
   brake_auc   how well it sorts the plans that force a driver (true braking above score.forced) from the rest: the
-              probability that a forcing plan is predicted to impose more than a tolerated one (ties half; cv 0.5).
+              probability that a forcing plan is predicted to impose more than a tolerated one (ties half; cv 0.5);
+  brake_fa    false alarms: the share of the plans whose true braking stays below score.calm that are predicted to
+              impose more than score.alarm (the step's b_courtesy): the merges a predictor would refuse for nothing.
 The `follower` row is what the courteous planner judges a gap by whatever the predictor (planner.strategy.Rules.follower_braking):
 a nominal IDM driver behind the executed ego plan, on constant-velocity positions; its braking scores, no response.
 
@@ -57,7 +59,7 @@ SCHEMA = {
     "plans.y_push": validate.Range(0), "plans.dv": validate.Range(0), "plans.delay": validate.ListOf(validate.Int(0), 2),
     "plans.k_y": POS, "plans.a_bounds": validate.Range(strict=True), "reference.draws": validate.Int(1),
     "score.threshold": validate.Real(0), "score.tolerance": validate.Real(0), "score.resamples": validate.Int(0),
-    "score.forced": POS,
+    "score.forced": POS, "score.calm": POS, "score.alarm": POS,
     "dataset.seed": validate.SEED, "dataset.episodes": validate.Int(1),
 }
 
@@ -116,15 +118,18 @@ def follower_braking(s, pair: Pair):
     return np.array(out)
 
 
-def brake_scores(pred, true, forced: float) -> dict:
-    """brake_corr and brake_auc (module doc) of predicted against true hardest braking per plan, both (P, 2) in m/s^2."""
+def brake_scores(pred, true, forced: float, calm: float, alarm: float) -> dict:
+    """brake_corr, brake_auc and brake_fa (module doc) of predicted against true hardest braking per plan, both (P, 2)
+    in m/s^2."""
     from scipy.stats import mannwhitneyu
 
     p, t = np.ravel(pred), np.ravel(true)
     corr = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 and t.std() > 0 else 0.0
     pos, neg = p[t > forced], p[t <= forced]
     auc = float(mannwhitneyu(pos, neg).statistic / (len(pos) * len(neg))) if len(pos) and len(neg) else float("nan")
-    return {"brake_corr": corr, "brake_auc": auc}
+    quiet = p[t < calm]
+    fa = float((quiet > alarm).mean()) if len(quiet) else float("nan")
+    return {"brake_corr": corr, "brake_auc": auc, "brake_fa": fa}
 
 
 def peaks(response):
@@ -265,14 +270,15 @@ def run(cfg: DictConfig) -> dict:
         if preds is None:
             continue
         brakes = preds.pop("braking")
-        metrics = brake_scores(brakes, true_braking, cfg.score.forced)
+        judge = dict(forced=cfg.score.forced, calm=cfg.score.calm, alarm=cfg.score.alarm)
+        metrics = brake_scores(brakes, true_braking, **judge)
         metrics.update({f"{k}{suffix}": v for suffix, pred in preds.items()
                         for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()})
         if cfg.score.resamples:
             for suffix, pred in preds.items():
                 metrics.update(intervals(pred, true, states, cfg.score.resamples, suffix))
             metrics.update(intervals(brakes, true_braking, states, cfg.score.resamples,
-                                     score=lambda p, t: brake_scores(p, t, cfg.score.forced)))
+                                     score=lambda p, t: brake_scores(p, t, **judge)))
         metrics["seconds"] = time.perf_counter() - t0
         with mlflow_run("interaction", cfg, run_name=f"interaction-{name}", source=name):
             mlflow.log_metrics({**metrics, **common})

@@ -82,7 +82,7 @@ ACCURACY = ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_rollout_m_yiel
 GRADIENTS = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err", "react_wrel_err", "ramp_grad_rel_err",
              "ramp_react_rel_err")
 INTERACTION = ("react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac", "brake_corr",
-               "brake_auc")
+               "brake_auc", "brake_fa")
 FIDELITY = ("brake_auc", "react_corr")  # the interaction benchmark's scores the fidelity figure ranks predictors by
 SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling", "blind": "best fixed strategy"}  # the ceiling's
 # searches and their row names; the dense ceiling's best fixed strategy only with results_preset.blind_episodes > 0

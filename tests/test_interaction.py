@@ -110,20 +110,24 @@ def test_braking_is_the_hardest_deceleration_of_another_car_after_the_history():
     assert braking(xy, history, dt) == pytest.approx(25.0)
 
 
-def test_brake_scores_rank_the_forcing_plans():
-    true = np.array([[0.0, 6.0], [1.0, 5.0], [2.0, 0.5]])  # m/s^2: two of six plans force (> 4)
-    assert brake_scores(true, true, 4.0) == pytest.approx({"brake_corr": 1.0, "brake_auc": 1.0})
-    assert brake_scores(np.zeros_like(true), true, 4.0) == {"brake_corr": 0.0, "brake_auc": 0.5}  # cv: all ties
+def test_brake_scores_rank_the_forcing_plans_and_count_the_false_alarms():
+    true = np.array([[0.0, 6.0], [1.0, 5.0], [2.0, 0.5]])  # m/s^2: two of six plans force (> 4), three are calm (< 2)
+    judge = dict(forced=4.0, calm=2.0, alarm=3.0)
+    assert brake_scores(true, true, **judge) == pytest.approx({"brake_corr": 1.0, "brake_auc": 1.0, "brake_fa": 0.0})
+    cv = {"brake_corr": 0.0, "brake_auc": 0.5, "brake_fa": 0.0}  # all ties, and never an alarm
+    assert brake_scores(np.zeros_like(true), true, **judge) == cv
     swapped = np.array([[5.0, 0.0], [6.0, 1.0], [2.0, 0.5]])  # the forcing plans predicted at 0 and 1 m/s^2
-    assert brake_scores(swapped, true, 4.0)["brake_auc"] == pytest.approx(1 / 8)  # of 8 (forcing, tolerated) pairs only
-    # (1, 0.5) is ordered right
-    assert np.isnan(brake_scores(true, true, 10.0)["brake_auc"])  # no plan forces: nothing to sort
+    assert brake_scores(swapped, true, **judge)["brake_auc"] == pytest.approx(1 / 8)  # of 8 (forcing, tolerated) pairs only
+    # (1, 0.5) is ordered right; the calm plans (0, 1, 0.5 true) are predicted at 5, 6 and 0.5: two alarms of three
+    assert brake_scores(swapped, true, **judge)["brake_fa"] == pytest.approx(2 / 3)
+    assert np.isnan(brake_scores(true, true, 10.0, 2.0, 3.0)["brake_auc"])  # no plan forces: nothing to sort
+    assert np.isnan(brake_scores(true + 9.0, true + 9.0, **judge)["brake_fa"])  # no calm plan: no alarm to count
     rng = np.random.default_rng(1)
     true = rng.exponential(2.0, (60, 2))  # 60 pairs of 20 branch states
     pred = true + rng.normal(0.0, 1.5, true.shape)
-    ci = intervals(pred, true, np.repeat(np.arange(20), 3), 300, score=lambda p, t: brake_scores(p, t, 4.0))
-    point = brake_scores(pred, true, 4.0)
-    assert set(ci) == {"brake_corr_lo", "brake_corr_hi", "brake_auc_lo", "brake_auc_hi"}
+    ci = intervals(pred, true, np.repeat(np.arange(20), 3), 300, score=lambda p, t: brake_scores(p, t, **judge))
+    point = brake_scores(pred, true, **judge)
+    assert set(ci) == {f"brake_{k}_{end}" for k in ("corr", "auc", "fa") for end in ("lo", "hi")}
     assert all(ci[f"{k}_lo"] < point[k] < ci[f"{k}_hi"] for k in point) and ci["brake_auc_hi"] <= 1.0
 
 
