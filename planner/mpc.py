@@ -5,7 +5,7 @@ How a step runs (candidate starts -> ADMM -> safeguard -> choose) is planner.ste
 fallback) planner.safeguard; which plans to start from and how to choose among them, planner.strategy.
 """
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -175,15 +175,26 @@ def J_of(s: Settings, u_prev, Delta, alpha, Z):
 def lane_plan(s: Settings, z0, a):
     """Controls Delta, alpha (T_p,) that steer to the current lane's centre (straddling: the lane away from y_ref) at
     acceleration a (m/s^2) within the box, never into reverse (the bicycle's v may go negative)."""
-    z, Delta, alpha = np.asarray(z0, float), [], []
+    Delta, alpha, _ = lane_plans(s, z0, [a])
+    return Delta[0], alpha[0]
+
+
+def lane_plans(s: Settings, z0, accels):
+    """lane_plan for each acceleration of accels (n,) (m/s^2), rolled out together, with the rollouts: Delta, alpha
+    (n, T_p) and Z (n, 4T_p) as simulate's; each plan's numbers are those it has alone (numpy's elementwise maths)."""
+    z = np.asarray(z0, float)
     lane_y = s.road.centre(s.road.lane_of(z[1]))
     if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
         lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
-    for _ in range(s.T_p):
-        Delta.append(float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box)))
-        alpha.append(max(float(np.clip(a, *s.a_box)), -z[3] / s.params.dt))
-        z = bicycle.step(z, [Delta[-1], alpha[-1]], s.params)
-    return np.array(Delta), np.array(alpha)
+    a = np.clip(np.asarray(accels, float), *s.a_box)
+    z, u = np.repeat(z[None], len(a), 0), np.empty((len(a), 2))
+    Delta, alpha, Z = np.empty((len(a), s.T_p)), np.empty((len(a), s.T_p)), np.empty((len(a), 4 * s.T_p))
+    for t in range(s.T_p):
+        Delta[:, t] = u[:, 0] = np.clip(steer_to(z, lane_y, s.params), *s.delta_box)
+        stop = -z[:, 3] / s.params.dt
+        alpha[:, t] = u[:, 1] = np.where(stop > a, stop, a)  # builtins' max(a, stop), ties and NaN alike
+        z = Z[:, 4 * t:4 * t + 4] = bicycle.step(z, u, s.params)
+    return Delta, alpha, Z
 
 
 def brake_plan(s: Settings, z0):
@@ -217,12 +228,30 @@ def courtesy(s: Settings):
     return None if s.b_courtesy is None else (s.params.dt, float(s.b_courtesy))
 
 
-def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep, start: admm.ADMMState = None):
+def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep, start: admm.ADMMState = None,
+          like=None):
     """The step's Problem (eq. (5) by linearization), its Solvers (the Z-step built by `zstep`, a planner.zstep class
-    with its settings bound) and the ADMM start, Z clipped to the state box: `start`, or start_point's from warm."""
+    with its settings bound) and the ADMM start, Z clipped to the state box: `start`, or start_point's from warm. like:
+    build's result for settings `alike` these, whose set-up is reused but for Phi_3 and the Z-step (the same numbers)."""
     start = start_point(s, obs, warm)[0] if start is None else start
-    lo, hi = state_box(s)
-    prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.admm.rho), tuple(s.delta_box),
-                        tuple(s.a_box), lo, hi)
-    safety = s.core.safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape)
-    return prob, admm.solvers(prob, s.core.zstep(zstep), safety, s.admm.osqp), start._replace(Z=np.clip(start.Z, lo, hi))
+    if like is None:
+        lo, hi = state_box(s)
+        prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.admm.rho), tuple(s.delta_box),
+                            tuple(s.a_box), lo, hi)
+        safety = s.core.safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape)
+        solvers = admm.solvers(prob, s.core.zstep(zstep), safety, s.admm.osqp)
+    else:
+        prob = like[0]._replace(Phi_3=cost.Phi_3(s.T_p, s.weights, s.y_ref, s.v_ref))
+        solvers = like[1]._replace(zstep=s.core.zstep(zstep)(prob, like[1].zstep.safety, s.admm.osqp))
+    return prob, solvers, start._replace(Z=np.clip(start.Z, prob.z_lo, prob.z_hi))
+
+
+REFERENCES = ("y_ref", "v_ref")  # what a multi-start step's starts may aim at apart and still share their set-up
+
+
+def alike(a: Settings, b: Settings) -> bool:
+    """Whether a step with settings b sets up as one with a but for Phi_3 and the Z-step (build's `like`): settings
+    equal but for the references, the dynamics linearised about the last observed state (not along a start's plan)."""
+    return a.linearize == "last_observed" and all(
+        getattr(a, f.name) is getattr(b, f.name) or getattr(a, f.name) == getattr(b, f.name)
+        for f in fields(Settings) if f.compare and f.name not in REFERENCES)

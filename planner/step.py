@@ -8,7 +8,7 @@ import numpy as np
 
 from core.jobs import UserError
 from planner import admm, jit_admm, jit_rollout, safeguard
-from planner.mpc import J_of, Observation, Settings, StepResult, build
+from planner.mpc import J_of, Observation, Settings, StepResult, alike, build
 from planner.qp import SolverFailure
 
 
@@ -78,7 +78,10 @@ def solve_all(s: Settings, obs: Observation, source, starts, zstep) -> list:
     if (len(aimed) < 2 or any(starts[k].aim.core.solve is not jit_admm.admm_solve for k in aimed)
             or jit_rollout.compiled_params(source) is None):
         return one_by_one()
-    built = {k: guarded(lambda: (build(starts[k].aim, obs, source, None, zstep, starts[k].plan), "")) for k in aimed}
+    built = {}
+    for k in aimed:  # a start aiming only elsewhere than one set up before shares that one's set-up (mpc.build's like)
+        like = next((b for j, (b, _) in built.items() if b is not None and alike(starts[j].aim, starts[k].aim)), None)
+        built[k] = guarded(lambda: (build(starts[k].aim, obs, source, None, zstep, starts[k].plan, like), ""))
     ok = [k for k in aimed if built[k][0] is not None and jit_admm.together(built[k][0][1])]
     admm_of = lambda k: starts[k].aim.admm
     try:

@@ -20,7 +20,7 @@ from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
 from planner import admm
-from planner.mpc import Observation, Settings, costs, lane_plan, planned, simulate, start_point
+from planner.mpc import Observation, Settings, costs, lane_plans, simulate, start_point
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
@@ -123,17 +123,18 @@ class Rules:
         lean's plan fails or imposes braking, the shifted plan, leaning already, goes on asking the driver behind instead
         of dropping back to the lane centre), then one Start per `starts` entry: ADMM aims at y_ref = the current lane's
         centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.9: lean in, the nudge) and at v_ref = v
-        (None: the scenario's), from holding the lane at a (lane_plan); with keep_ahead a lean beside a car seen
+        (None: the scenario's), from holding the lane at a (mpc.lane_plans); with keep_ahead a lean beside a car seen
         yielding aims at that car's speed plus dv. The target lane's pull would draw every start into one basin; these
         solves stay in theirs (choose)."""
         out = [Start("shifted", start_point(s, obs, warm)[0], s, sum(float(o) > 0 for o, _, _ in self.starts) + 0.5)]
         lane_y = s.road.centre(s.road.lane_of(obs.z0[1]))
         v_yield = self.keep_ahead.speed(s, obs.history) if self.keep_ahead is not None else None
-        for rank, (offset, a, v) in enumerate(self.starts, 1):
+        plans = zip(*lane_plans(s, obs.z0, [a for _, a, _ in self.starts]))  # held lanes, rolled out together
+        for rank, ((offset, _, v), (Delta, alpha, Z)) in enumerate(zip(self.starts, plans), 1):
             y, v = lane_y + float(offset) * np.sign(s.y_ref - lane_y), s.v_ref if v is None else float(v)
             if offset > 0 and v_yield is not None:
                 v = float(np.clip(v_yield + self.keep_ahead.dv, *s.v_box))
-            out.append(Start(f"y {y:+.1f} m, v {v:.1f} m/s", planned(s, obs.z0, *lane_plan(s, obs.z0, a)),
+            out.append(Start(f"y {y:+.1f} m, v {v:.1f} m/s", admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)),
                              replace(s, y_ref=y, v_ref=v), rank))
         return out
 

@@ -1,6 +1,8 @@
 """The multi-start step (mpc=courteous) solves all its starts in one compiled call for the sources the compiled core runs
 itself (cv, the student): every start gets the plan, check and reason it gets solved alone, so the step chooses the same
 plan; the other sources, and a joint call that fails, take the one-by-one path."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from test_surrogate import smooth_student
@@ -120,3 +122,55 @@ def test_a_kernel_called_through_its_entry_point_gives_its_result_and_no_two_num
     for a in samples:
         for b in samples:
             assert jit_admm.structure(a) != jit_admm.structure(b) or typeof(a) == typeof(b), (a, b)  # one entry, one type
+
+
+def _leaves(x):
+    """The numbers of a set-up (build's Problem, Solvers, start): arrays and scalars, in order, through tuples, the
+    box QPs and the Z-step's data."""
+    if isinstance(x, tuple):
+        return [leaf for item in x for leaf in _leaves(item)]
+    if hasattr(x, "P_inv"):  # planner.qp.BoxQP
+        return _leaves((x.P, x.P_inv, x.q0, x.lo, x.hi))
+    if hasattr(x, "data"):  # the compiled Z-step
+        return _leaves(x.data)
+    return [x]
+
+
+def test_a_start_that_only_aims_elsewhere_shares_a_set_up_and_gets_the_numbers_of_its_own(states):
+    s, zstep, pairs = states
+    cv = SOURCES["cv"]()
+    for obs, warm in pairs:
+        first, *others = s.strategy.candidates(s, obs, warm, cv)
+        base = mpc.build(first.aim, obs, cv, None, zstep, first.plan)
+        for st in others:
+            assert (st.aim.y_ref, st.aim.v_ref) != (s.y_ref, s.v_ref) and mpc.alike(first.aim, st.aim)
+            shared = mpc.build(st.aim, obs, cv, None, zstep, st.plan, base)
+            alone = mpc.build(st.aim, obs, cv, None, zstep, st.plan)
+            assert shared[0].dyn is base[0].dyn and shared[1].delta_qp is base[1].delta_qp  # set up once
+            a, b = _leaves(shared), _leaves(alone)
+            assert len(a) == len(b) > 20 and all(np.array_equal(x, y) for x, y in zip(a, b))
+            assert not np.array_equal(shared[0].Phi_3.q, base[0].Phi_3.q)  # its own references
+    along = replace(s, linearize="along_plan")  # the dynamics then depend on each start's plan
+    assert not mpc.alike(along, replace(along, y_ref=4.0)) and mpc.alike(s, replace(s, y_ref=4.0, v_ref=1.0))
+    assert not mpc.alike(s, replace(s, b_courtesy=2.0)) and not mpc.alike(s, replace(s, T_p=s.T_p + 1))
+
+
+def test_lane_plans_rolled_out_together_are_each_plan_alone_and_its_rollout(states):
+    from data import bicycle
+    from data.world import steer_to
+
+    s = states[0]
+    for z0 in ([0.0, 1.9, 0.05, 5.0], [3.0, 2.2, -0.1, 0.3], [0.0, 0.1, 0.0, 12.0]):  # leaning, straddling, in lane
+        accels = [-1.0, -2.0, 0.5, 9.0, -50.0]  # beyond a_box both ways; hard braking meets the stop
+        Delta, alpha, Z = mpc.lane_plans(s, np.array(z0), accels)
+        for k, a in enumerate(accels):
+            z, lane_y = np.array(z0), s.road.centre(s.road.lane_of(z0[1]))
+            if abs(z0[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:
+                lane_y = s.road.centre(s.road.lane_of(z0[1] - np.sign(s.y_ref - z0[1]) * s.road.lane_width / 2))
+            for t in range(s.T_p):  # lane_plan as it was, one plan and one step at a time
+                d = float(np.clip(steer_to(z, lane_y, s.params), *s.delta_box))
+                acc = max(float(np.clip(a, *s.a_box)), -z[3] / s.params.dt)
+                assert (Delta[k, t], alpha[k, t]) == (d, acc)
+                z = bicycle.step(z, [d, acc], s.params)
+            assert np.array_equal(Z[k], mpc.simulate(z0, Delta[k], alpha[k], s.params))
+        assert np.any(alpha == -np.array(z0)[3] / s.params.dt) or z0[3] > 1.0
