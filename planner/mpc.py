@@ -138,12 +138,14 @@ class StepResult(NamedTuple):
 
 
 def simulate(z0, Delta, alpha, params):
-    """Nonlinear bicycle rollout of the controls: Z (4T_p,) stacking z(1..T_p)."""
-    z, out = np.asarray(z0, float), []
-    for d, a in zip(Delta, alpha):
-        z = bicycle.step(z, [d, a], params)
+    """Nonlinear bicycle rollout of the controls Delta, alpha (..., T_p) from z0 (4,): Z (..., 4T_p) stacking
+    z(1..T_p); plans rolled out together get the numbers each gets alone (numpy's elementwise maths)."""
+    u = np.stack([np.asarray(Delta, float), np.asarray(alpha, float)], -1)  # (..., T_p, 2)
+    z, out = np.asarray(z0, float), []  # broadcast against u's plans by the first step
+    for t in range(u.shape[-2]):
+        z = bicycle.step(z, u[..., t, :], params)
         out.append(z)
-    return np.concatenate(out)
+    return np.concatenate(out, -1)
 
 
 def shift(plan: admm.ADMMState):
@@ -207,13 +209,17 @@ def planned(s: Settings, z0, Delta, alpha) -> admm.ADMMState:
     return admm.ADMMState(Delta, alpha, simulate(z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
 
 
-def start_point(s: Settings, obs: Observation, warm: admm.ADMMState | None):
-    """Where a step's solver starts (the shifted previous plan, or zero inputs rolled out: cold) and the dynamics
-    linearised for it; shared by ADMM and solver=ipopt so both solve the same problem from the same point."""
+def warm_start(s: Settings, obs: Observation, warm: admm.ADMMState | None) -> admm.ADMMState:
+    """Where a step's solver starts: the shifted previous plan, or zero inputs rolled out (cold)."""
     if warm is None:
-        start = planned(s, obs.z0, np.zeros(s.T_p), np.zeros(s.T_p))
-    else:
-        start = shift(warm)._replace(zstate=None)
+        return planned(s, obs.z0, np.zeros(s.T_p), np.zeros(s.T_p))
+    return shift(warm)._replace(zstate=None)
+
+
+def start_point(s: Settings, obs: Observation, warm: admm.ADMMState | None):
+    """warm_start's start and the dynamics linearised for it; shared by ADMM and solver=ipopt so both solve the same
+    problem from the same point."""
+    start = warm_start(s, obs, warm)
     return start, linearization(s, obs, start)
 
 
@@ -231,9 +237,9 @@ def courtesy(s: Settings):
 def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep, start: admm.ADMMState = None,
           like=None):
     """The step's Problem (eq. (5) by linearization), its Solvers (the Z-step built by `zstep`, a planner.zstep class
-    with its settings bound) and the ADMM start, Z clipped to the state box: `start`, or start_point's from warm. like:
+    with its settings bound) and the ADMM start, Z clipped to the state box: `start`, or warm_start's from warm. like:
     build's result for settings `alike` these, whose set-up is reused but for Phi_3 and the Z-step (the same numbers)."""
-    start = start_point(s, obs, warm)[0] if start is None else start
+    start = warm_start(s, obs, warm) if start is None else start
     if like is None:
         lo, hi = state_box(s)
         prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.admm.rho), tuple(s.delta_box),

@@ -9,9 +9,10 @@ from planner import admm, repair
 from planner.mpc import J_of, Observation, Settings, StepResult, brake_plan, costs, shift, simulate
 
 
-def rollout(s: Settings, obs: Observation, source, Delta, alpha):
-    """The nonlinear rollout Z of (Delta, alpha) and the predictor's values (T_p, SLOTS, 2) under it."""
-    Z = simulate(obs.z0, Delta, alpha, s.params)
+def rollout(s: Settings, obs: Observation, source, Delta, alpha, Z=None):
+    """The nonlinear rollout Z of (Delta, alpha) (given: simulate's, already done) and the predictor's values
+    (T_p, SLOTS, 2) under it."""
+    Z = simulate(obs.z0, Delta, alpha, s.params) if Z is None else Z
     return Z, s.core.values(source, obs.history, ego_xy(Z, s.T_p))
 
 

@@ -20,7 +20,7 @@ from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
 from planner import admm
-from planner.mpc import Observation, Settings, costs, lane_plans, simulate, start_point
+from planner.mpc import Observation, Settings, costs, lane_plans, simulate, start_point, warm_start
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
@@ -43,7 +43,7 @@ class Paper:
 
     def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
         """The shifted previous plan."""
-        return [Start("shifted", start_point(s, obs, warm)[0], s, 0.0)]
+        return [Start("shifted", warm_start(s, obs, warm), s, 0.0)]
 
     def choose(self, s: Settings, obs: Observation, plans):
         """The one plan."""
@@ -126,7 +126,7 @@ class Rules:
         (None: the scenario's), from holding the lane at a (mpc.lane_plans); with keep_ahead a lean beside a car seen
         yielding aims at that car's speed plus dv. The target lane's pull would draw every start into one basin; these
         solves stay in theirs (choose)."""
-        out = [Start("shifted", start_point(s, obs, warm)[0], s, sum(float(o) > 0 for o, _, _ in self.starts) + 0.5)]
+        out = [Start("shifted", warm_start(s, obs, warm), s, sum(float(o) > 0 for o, _, _ in self.starts) + 0.5)]
         lane_y = s.road.centre(s.road.lane_of(obs.z0[1]))
         v_yield = self.keep_ahead.speed(s, obs.history) if self.keep_ahead is not None else None
         plans = zip(*lane_plans(s, obs.z0, [a for _, a, _ in self.starts]))  # held lanes, rolled out together

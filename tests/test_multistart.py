@@ -174,3 +174,19 @@ def test_lane_plans_rolled_out_together_are_each_plan_alone_and_its_rollout(stat
                 z = bicycle.step(z, [d, acc], s.params)
             assert np.array_equal(Z[k], mpc.simulate(z0, Delta[k], alpha[k], s.params))
         assert np.any(alpha == -np.array(z0)[3] / s.params.dt) or z0[3] > 1.0
+
+
+def test_plans_simulated_together_are_each_simulated_alone_step_by_step(states):
+    from data import bicycle
+
+    s, rng = states[0], np.random.default_rng(3)
+    z0 = np.array([1.0, 1.9, 0.05, 5.0])
+    Delta, alpha = rng.uniform(-0.5, 0.5, (4, s.T_p)), rng.uniform(-6.0, 3.0, (4, s.T_p))
+    Z = mpc.simulate(z0, Delta, alpha, s.params)
+    assert Z.shape == (4, 4 * s.T_p)
+    for k in range(4):
+        z, alone = z0, []
+        for d, a in zip(Delta[k], alpha[k]):  # simulate as it was: one plan, one step at a time
+            z = bicycle.step(z, [d, a], s.params)
+            alone.append(z)
+        assert np.array_equal(Z[k], np.concatenate(alone)) and np.array_equal(Z[k], mpc.simulate(z0, Delta[k], alpha[k], s.params))
