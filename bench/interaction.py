@@ -231,7 +231,7 @@ def write_table(path: Path, table: dict):
     and seconds."""
     cols = [f"react_{k}{s}{e}" for s in ("", "_jac") for k in ("corr", "gain", "hit")
             for e in (("", "_lo", "_hi") if k != "hit" else ("",))] + \
-        [f"brake_{k}{e}" for k in ("corr", "auc") for e in ("", "_lo", "_hi")] + ["seconds"]
+        [f"brake_{k}{e}" for k in ("corr", "auc", "fa") for e in ("", "_lo", "_hi")] + ["seconds"]
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["source", *cols])

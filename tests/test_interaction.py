@@ -252,7 +252,9 @@ def test_job_logs_one_run_per_source_and_skips_missing_models(tmp_path, caplog):
     assert table["cv"]["react_gain_jac"] == 0.0 and "react_gain_jac" not in table["reference"]
     assert table["cv"]["brake_corr"] == 0.0 and "react_corr" not in table["follower"] and "brake_corr" in table["follower"]
     with open(tmp_path / "interaction.csv") as f:
-        assert [r["source"] for r in csv.DictReader(f)] == ["cv", "reference", "follower"]
+        rows = list(csv.DictReader(f))
+    assert [r["source"] for r in rows] == ["cv", "reference", "follower"]
+    assert float(rows[0]["brake_fa"]) == 0.0 and float(rows[2]["brake_fa"]) == pytest.approx(table["follower"]["brake_fa"], abs=1e-4)
     runs = mlflow.search_runs(experiment_names=["interaction"], filter_string="params.states = '3'")
     assert sorted(runs["params.source"])[-3:] == ["cv", "follower", "reference"]
     artifacts = mlflow.artifacts.list_artifacts(run_id=runs.loc[runs["params.source"] == "cv", "run_id"].iloc[0])
