@@ -256,8 +256,8 @@ REFERENCES = ("y_ref", "v_ref")  # what a multi-start step's starts may aim at a
 
 
 def alike(a: Settings, b: Settings) -> bool:
-    """Whether a step with settings b sets up as one with a but for Phi_3 and the Z-step (build's `like`): settings
-    equal but for the references, the dynamics linearised about the last observed state (not along a start's plan)."""
-    return a.linearize == "last_observed" and all(
-        getattr(a, f.name) is getattr(b, f.name) or getattr(a, f.name) == getattr(b, f.name)
-        for f in fields(Settings) if f.compare and f.name not in REFERENCES)
+    """Whether a step with settings b sets up as one with a but for Phi_3 and the Z-step (build's `like`): the same
+    settings (the same objects, as dataclasses.replace keeps them) but for the references, the dynamics linearised
+    about the last observed state (not along a start's plan)."""
+    return a.linearize == "last_observed" and all(getattr(a, f.name) is getattr(b, f.name) for f in fields(Settings)
+                                                  if f.compare and f.name not in REFERENCES)
