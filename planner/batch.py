@@ -13,7 +13,9 @@ Beside each method's per-episode CSV, steps/<method>_<seed>.csv holds each finis
 (planner/report.py write_csv; written here, not by the workers, so a Ray cluster needs no shared disk): the recorded
 controls that `ceiling starts=[...]` replays. The headline is the courteous-merge rate (data.outcomes). Intervals
 (core.stats): Wilson for `courteous`, `merged` and `collision`
-(`courteous_lo`, `courteous_hi`, ...), Student t for the means of t_merge, C_max, fallbacks and b_imposed_max.
+(`courteous_lo`, `courteous_hi`, ...), a percentile bootstrap over the finished episodes for the means of t_merge, C_max,
+fallbacks and b_imposed_max: these are non-negative and skewed (most episodes have no fallback), where a Student t interval
+would reach below 0.
 """
 import contextlib
 import csv
@@ -39,6 +41,7 @@ from planner.closed_loop import Episode  # noqa: E402
 FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
            "step_ms": "MPC step wall time (ms, every step)", "admm_iters_mean": "ADMM iterations (episode mean)",
            "fallbacks": "fallbacks per episode"}
+RESAMPLES = 2000  # bootstrap resamples of the episode means; seeded (0): the same rows always give the same interval
 _WORKER = {}  # per process: the config it was set up for, and its (scenario, source, settings)
 log = logging.getLogger(__name__)
 
@@ -80,7 +83,7 @@ def aggregate(rows, step_ms, iters) -> dict:
     return {"episodes": float(len(rows)), "crashes": float(len(rows) - len(done)), "nans": float(sum(r["nan"] for r in rows)),
             "d_min_m": safe(np.min, [r["d_min_m"] for r in done]), "ttc_min": safe(np.min, [r["ttc_min"] for r in done]),
             "step_ms_median": safe(np.median, step_ms), "step_ms_p95": safe(lambda a: np.percentile(a, 95), step_ms),
-            "admm_iters_mean": safe(np.mean, iters), **stats.outcomes([done])}
+            "admm_iters_mean": safe(np.mean, iters), **stats.outcomes([done], RESAMPLES, seed=0)}
 
 
 def progress(iterable, total: int, desc: str):

@@ -1,6 +1,7 @@
 """Batch statistics: one MLflow run per method with rates and a per-episode CSV; a crashing episode is counted (and, when
 tolerated, not fatal); the rates, means and their intervals against independent computations."""
 import csv
+import itertools
 
 import mlflow
 import numpy as np
@@ -37,8 +38,23 @@ def test_aggregate_of_hand_built_rows():
     assert [m["merged_lo"], m["merged_hi"]] == pytest.approx([0.3006, 0.9544], abs=1e-4)  # a textbook value
     for key, values in (("t_merge", [10.0, 12.0, 14.0]), ("C_max", [0.1, 0.2, 0.3, 0.4]), ("fallbacks", [0.0, 1.0, 0.0, 3.0]),
                         ("b_imposed_max", [1.0, 6.0, 2.0, 0.5])):
-        lo, hi = stats.t.interval(0.95, len(values) - 1, loc=np.mean(values), scale=stats.sem(values))
+        # the exact percentile bootstrap: the quantiles of the means of all n^n equally likely resamples
+        every = [np.mean(r) for r in itertools.product(values, repeat=len(values))]
+        lo, hi = np.quantile(every, [0.025, 0.975], method="inverted_cdf")
         assert [m[key], m[f"{key}_lo"], m[f"{key}_hi"]] == pytest.approx([np.mean(values), lo, hi]), key
+
+
+def test_a_skewed_count_gets_an_interval_that_stays_at_or_above_zero():
+    """19 episodes without a fallback and one with 3: mean 0.15, whose Student t interval reaches below 0."""
+    rows = [dict(seed=i, crash=0, nan=0, merged=1.0, collision=0.0, courteous=1.0, t_merge=10.0, C_max=1.0, d_min_m=2.0,
+                 ttc_min=2.0, b_imposed_max=1.0, fallbacks=3.0 if i == 7 else 0.0) for i in range(20)]
+    m = batch.aggregate(rows, [1.0], [1])
+    values = [r["fallbacks"] for r in rows]
+    assert stats.t.interval(0.95, 19, loc=np.mean(values), scale=stats.sem(values))[0] < 0  # what the t interval said
+    assert m["fallbacks"] == pytest.approx(0.15)
+    assert 0 <= m["fallbacks_lo"] <= m["fallbacks"] <= m["fallbacks_hi"]
+    # a resample's mean is 3 k / 20 with k ~ Binomial(20, 1/20) episodes that fell back: its 2.5% and 97.5% quantiles
+    assert [m["fallbacks_lo"], m["fallbacks_hi"]] == pytest.approx(3 / 20 * stats.binom.ppf([0.025, 0.975], 20, 1 / 20))
 
 
 def batch_cfg(tmp_path, *overrides):
