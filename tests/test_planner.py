@@ -1,6 +1,7 @@
 """Planner pieces: ADMM reaches the one-QP MPC optimum, d b_i / d Z from every source, fallbacks instead of crashes."""
 import copy
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,25 @@ def test_daqp_failure_falls_back(two_lane, sqp):
     object.__setattr__(crossed, "delta_box", (0.1, -0.1))  # past Settings' check, lower above upper: DAQP refuses the box QP
     result = step.mpc_step(crossed, obs, cv, None, sqp)
     assert "solver failure (DAQP exit flag -" in result.fallback and np.all(np.isfinite(result.u))
+
+
+@pytest.mark.parametrize("core", ["compiled", "reference"])
+def test_built_steps_are_plain_partials_that_answer_as_hydras_own(two_lane, core):
+    """planner.setup.build's step and its Z-step: plain partials (the installed Hydra's partial re-checks its target
+    policy on every call) of the same functions and arguments, with the same plan, control and reason."""
+    scenario, cv, s = two_lane
+    s = dataclasses.replace(s, admm=dataclasses.replace(s.admm, core=core))
+    node = planner_config("two_lane").solver.step
+    ours, hydras = build(node), jobs.build(node)
+    assert type(ours) is functools.partial and type(ours.keywords["zstep"]) is functools.partial
+    assert ours.func is hydras.func is step.mpc_step
+    assert (ours.keywords["zstep"].func, ours.keywords["zstep"].keywords) == (hydras.keywords["zstep"].func,
+                                                                             hydras.keywords["zstep"].keywords)
+    z = scenario.make_world(0).z
+    z[0, 1], z[0, 2] = 1.6, 0.15  # the ego nudging towards the platoon: the safety rows bind
+    a, b = (f(s, observe(z), cv, None) for f in (ours, hydras))
+    assert a.reason == b.reason and np.array_equal(a.u, b.u)
+    assert all(np.array_equal(x, y) for x, y in zip(a.plan[:4], b.plan[:4]))
 
 
 def test_unknown_names_and_missing_models_are_one_line_errors(tmp_path):
