@@ -15,7 +15,7 @@ from planner.gradients import Recording, WorldModel
 
 def build(node, **kwargs):
     """core.jobs.build, with each `_partial_: true` object (a step, its Z-step) a plain functools.partial: the installed
-    Hydra's partial checks its target policy (a sha256 of it included) on every call, 0.2-0.35 ms of a planner step; the
+    Hydra's partial checks its target policy (a sha256 of it included) on every call, ~0.2 ms of a planner step; the
     target was checked once here, when built."""
     return plain(jobs.build(node, **kwargs))
 
