@@ -263,14 +263,13 @@ def run(cfg: DictConfig) -> dict:
              f"{common['real_pair_share']:.1%} (" + ", ".join(f"{k[16:]} {v:.1%}" for k, v in common.items()
                                                                if k.startswith("real_pair_share_")) + "); plans "
              f"that make a driver brake harder than {cfg.score.forced} m/s^2: {common['n_forcing_plans']} of {2 * len(pairs)}")
-    table = {}
+    table, judge = {}, dict(forced=cfg.score.forced, calm=cfg.score.calm, alarm=cfg.score.alarm)
     for name in cfg.sources:
         t0 = time.perf_counter()
         preds = predict(name, pairs, cfg)
         if preds is None:
             continue
         brakes = preds.pop("braking")
-        judge = dict(forced=cfg.score.forced, calm=cfg.score.calm, alarm=cfg.score.alarm)
         metrics = brake_scores(brakes, true_braking, **judge)
         metrics.update({f"{k}{suffix}": v for suffix, pred in preds.items()
                         for k, v in scores(pred, true, cfg.score.threshold, cfg.score.tolerance).items()})

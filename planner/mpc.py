@@ -204,9 +204,10 @@ def brake_plan(s: Settings, z0):
     return lane_plan(s, z0, s.safeguard.brake)
 
 
-def planned(s: Settings, z0, Delta, alpha) -> admm.ADMMState:
-    """An ADMM start from controls (Delta, alpha): their nonlinear rollout and mu = 0."""
-    return admm.ADMMState(Delta, alpha, simulate(z0, Delta, alpha, s.params), np.zeros(4 * s.T_p))
+def planned(s: Settings, z0, Delta, alpha, Z=None) -> admm.ADMMState:
+    """An ADMM start from controls (Delta, alpha): their nonlinear rollout (Z: simulate's, already done) and mu = 0."""
+    Z = simulate(z0, Delta, alpha, s.params) if Z is None else Z
+    return admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p))
 
 
 def warm_start(s: Settings, obs: Observation, warm: admm.ADMMState | None) -> admm.ADMMState:

@@ -20,7 +20,7 @@ from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
 from planner import admm
-from planner.mpc import Observation, Settings, costs, lane_plans, simulate, start_point, warm_start
+from planner.mpc import Observation, Settings, costs, lane_plans, planned, simulate, start_point, warm_start
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
@@ -134,7 +134,7 @@ class Rules:
             y, v = lane_y + float(offset) * np.sign(s.y_ref - lane_y), s.v_ref if v is None else float(v)
             if offset > 0 and v_yield is not None:
                 v = float(np.clip(v_yield + self.keep_ahead.dv, *s.v_box))
-            out.append(Start(f"y {y:+.1f} m, v {v:.1f} m/s", admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)),
+            out.append(Start(f"y {y:+.1f} m, v {v:.1f} m/s", planned(s, obs.z0, Delta, alpha, Z),
                              replace(s, y_ref=y, v_ref=v), rank))
         return out
 
@@ -443,7 +443,7 @@ class Interactive:
         names, Delta, alpha, Z, aims, _ = self.ranked(s, obs, warm, source)
         out = []
         for rank in range(min(self.refine, len(names))):
-            plan = admm.ADMMState(Delta[rank], alpha[rank], Z[rank], np.zeros(4 * s.T_p))
+            plan = planned(s, obs.z0, Delta[rank], alpha[rank], Z[rank])
             y, v = aims[rank]
             out += [Start(names[rank], plan, replace(s, y_ref=float(y), v_ref=float(v)), rank),
                     Start(f"{names[rank]} as planned", plan, None, rank + 0.5)]
