@@ -314,6 +314,7 @@ DISTILL = {
     "model.data.perturbed_copies": Int(0, optional=True), "model.data.contrast_groups": Int(0, optional=True),
     "model.data.rollout_groups": Int(0, optional=True), "model.data.projections": Int(1, optional=True),
     "model.data.hard_braking": Real(0, lo_open=True, optional=True), "model.data.hard_weight": Real(0, lo_open=True, optional=True),
+    "model.data.whole_weight": Real(0, lo_open=True, optional=True),
     "model.data.fraction": Real(0, 1, lo_open=True, optional=True),
     "model.certificate.samples": Int(1, optional=True), "model.certificate.fd_step_m": Real(0, lo_open=True, optional=True),
     "model.certificate.rho_used": Real(0, lo_open=True, optional=True), "model.certificate.T_p": Int(1, optional=True),

@@ -64,23 +64,27 @@ class SequenceData(WindowData):
     (H, 2), others' future (H, N, 2), mask (H,)); where the run ends early the ego continues at constant velocity
     and the mask is False. With contrast_groups > 0 each training batch also carries that many branch groups (the
     same past under the episode's own and its counterfactual egos' futures, padded, with a member mask). Windows whose
-    recorded future has another car braking harder than hard_braking are drawn hard_weight times as often."""
+    recorded future has another car braking harder than hard_braking are drawn hard_weight times as often, and those
+    whose recorded future spans the whole horizon whole_weight times (the two factors multiply)."""
 
-    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, fraction):
+    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, whole_weight,
+                 fraction):
         """horizon: H, steps of the recorded future per window (1 gives the one-step pairs only); contrast_groups:
-        branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight (-, 1: uniform); fraction: as
-        WindowData's."""
+        branch groups per training batch (0: none); hard_braking (m/s^2), hard_weight, whole_weight (-, 1: uniform);
+        fraction: as WindowData's."""
         super().__init__(dataset_dir, batch_size, fraction)
         self.horizon, self.group_batch = horizon, contrast_groups
         self.hard_braking, self.hard_weight = float(hard_braking), float(hard_weight)  # > 0: core.validate
+        self.whole_weight = float(whole_weight)
 
     def sampler(self):
-        """Uniform shuffling, or with hard_weight != 1 a WeightedRandomSampler that favours the hard-braking windows."""
-        if self.hard_weight == 1.0:
+        """Uniform shuffling, or a WeightedRandomSampler that favours the hard-braking windows (hard_weight != 1) and
+        the windows with a whole recorded future (whole_weight != 1)."""
+        if self.hard_weight == 1.0 and self.whole_weight == 1.0:
             return None
-        dt = dataset.read_meta(self.dataset_dir)["dt"]
-        hard = braking(*(a.numpy() for a in self.splits["train"].tensors), dt) > self.hard_braking
-        w = np.where(hard, self.hard_weight, 1.0)
+        X, ego, others, mask = (a.numpy() for a in self.splits["train"].tensors)
+        hard = braking(X, ego, others, mask, dataset.read_meta(self.dataset_dir)["dt"]) > self.hard_braking
+        w = np.where(hard, self.hard_weight, 1.0) * np.where(mask.all(axis=1), self.whole_weight, 1.0)
         return WeightedRandomSampler(torch.from_numpy(w), num_samples=len(w))
 
     def tensors(self, arrays):

@@ -127,7 +127,8 @@ def test_a_branch_term_without_branch_groups_is_one_clear_error(tiny_dataset, tm
     assert not list(tmp_path.glob("*.ckpt"))  # nothing trained or written
 
 
-@pytest.mark.parametrize("override, shown", [("model.data.hard_weight=0", "0"), ("model.data.hard_braking=-1", "-1")])
+@pytest.mark.parametrize("override, shown", [("model.data.hard_weight=0", "0"), ("model.data.hard_braking=-1", "-1"),
+                                             ("model.data.whole_weight=-2", "-2")])
 def test_a_hard_window_setting_that_is_not_positive_is_one_line_before_any_training(tiny_dataset, tmp_path, override, shown):
     key = override.split("=")[0]
     with pytest.raises(UserError, match=rf"^{key}={shown}: must be a number > 0$"):

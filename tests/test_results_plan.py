@@ -73,7 +73,7 @@ def test_a_teacher_trained_on_a_fraction_of_the_data_sees_the_first_episodes_win
     episodes = sorted(set(train["episode"].tolist()))
     first = set(episodes[: round(0.5 * len(episodes))])
     assert 0 < len(first) < len(episodes)
-    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, 0.5)
+    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, 1.0, 0.5)
     data.setup()
     X = data.splits["train"].tensors[0].numpy()
     np.testing.assert_array_equal(X, train["X"][[e in first for e in train["episode"].tolist()]])

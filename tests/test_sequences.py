@@ -163,11 +163,22 @@ def test_hard_braking_windows_are_found_from_the_recorded_future_and_drawn_more_
     mask = np.array([[True, True, True], [False, False, False]])  # the second window's future was never recorded
     ego = np.zeros((2, 3, 2))
     np.testing.assert_allclose(braking(X, ego, others * mask[:, :, None, None], mask, dt), [6.0, 0.0], atol=1e-9)
-    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 10.0, 1.0)
+    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 10.0, 1.0, 1.0)
     data.setup()
     X, ego, others, mask = (a.numpy() for a in data.splits["train"].tensors)
     hard = braking(X, ego, others, mask, dataset.read_meta(tiny_dataset)["dt"]) > 3.0
     assert 0 < hard.sum() < len(hard)
     weights = data.sampler().weights.numpy()
     np.testing.assert_array_equal(weights, np.where(hard, 10.0, 1.0))
-    assert SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, 1.0).sampler() is None  # uniform: shuffled as before
+    assert SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, 1.0, 1.0).sampler() is None  # uniform: shuffled as before
+
+
+def test_windows_whose_recorded_future_spans_the_horizon_are_drawn_more_often(tiny_dataset):
+    from distill.datamodule import SequenceData
+
+    arrays = dataset.load(tiny_dataset, "train")
+    whole = futures(arrays, 8)[3].all(axis=1)  # the run goes on 8 steps with the same cars in its slots
+    assert 0 < whole.sum() < len(whole)
+    data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, 4.0, 1.0)
+    data.setup()
+    np.testing.assert_array_equal(data.sampler().weights.numpy(), np.where(whole, 4.0, 1.0))
