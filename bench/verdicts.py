@@ -6,6 +6,8 @@ At the states a closed loop visits on held-out dense worlds (the interactive ste
 candidate plans (planner.strategy.Interactive.plans) are judged by each source and by the world itself (the oracle: copies of that world with its true hidden decisions, the ego put on each plan). A
 candidate is a *good merge* when it merges within the horizon with the others outside the safety shape and nobody
 braking harder than mpc.b_courtesy. Per source, over every (state, candidate):
+  good_kept    the share of truly good merges the source also judges good (1 - false_alarm; higher is better: the
+               fidelity score of `make results`, which ranks predictors as the interactive step's closed loop does);
   false_alarm  the share of truly good merges the source refuses (why a step waits where it could merge);
   miss         the share of the other merging candidates it accepts as good (why a step forces or collides);
   brake_fa     the share of candidates where nobody truly brakes above 2 m/s^2 that it predicts braking above
@@ -17,37 +19,71 @@ and per state, the candidate it ranks first (planner.strategy.Interactive.order)
   takes_bad    a merge that is not good.
 95% intervals: percentile bootstrap over states for the candidate shares, Wilson for the per-state ones.
 
+The judges are the gradient sources of `sources` on the models of `models_dir`, then each entry of `variants`
+({name, gradients, models_dir}: a source on the models of another folder, such as a graded training's or another
+training seed's), beside the oracle; the states and the world's verdicts are computed once and shared by all of them.
+
     python -m bench.verdicts [worlds=10] [every=5] [drive=cv] [seed_offset=11000000] [sources=[cv,student,teacher,surrogate]]
+        [variants=[{name: student_5pct, gradients: student, models_dir: <folder>}]]
 """
 import csv
 import sys
 from pathlib import Path
 
 import numpy as np
+from omegaconf import ListConfig
 
 from bench.branches import heldout_seeds
 from core import stats, validate
 from core.jobs import UserError, atomic_file, guarded, job_config, writable
 from data.perception import observe
 from planner import mpc, setup
+from planner.gradients import available
 
 FORCED = 2.0  # m/s^2: below this the world's drivers brake for nothing much (issue 44's false-alarm definition)
 SCHEMA = {"sources": validate.ListOf(validate.GRADIENT_OPTIONS), "planner": validate.ListOf(validate.Text()),
           "models_dir": validate.Text(), "out_dir": validate.Text(), "seed_offset": validate.SEED,
           "worlds": validate.Int(1), "every": validate.Int(1), "drive": validate.GRADIENT_OPTIONS,
           "resamples": validate.Int(1)}
+VARIANT = ("name", "gradients", "models_dir")  # the keys of a variant
+JUDGE = validate.OneOf(tuple(available(needs_world=False)))  # a variant's source: the oracle is the reference, not a judge
+
+
+def variants(cfg) -> list:
+    """cfg.variants, each {name, gradients, models_dir} under a name no source, the oracle or another variant has; one
+    UserError naming the entry otherwise."""
+    if not isinstance(cfg.variants, ListConfig):
+        raise UserError(f"variants={cfg.variants}: must be a list of {{name, gradients, models_dir}}")
+    taken = {*cfg.sources, "oracle"}
+    for i, v in enumerate(cfg.variants):
+        where = f"variants[{i}]"
+        if not hasattr(v, "keys") or set(v.keys()) != set(VARIANT):
+            raise UserError(f"{where}={v}: must be {{name: <judge's name>, gradients: <source>, models_dir: <folder>}}")
+        if not validate.Text().ok(v.name) or v.name in taken:
+            raise UserError(f"{where}.name={v.name}: must be a name that no source, the oracle or another variant has")
+        if not JUDGE.ok(v.gradients):
+            raise UserError(f"{where}.gradients={v.gradients}: must be {JUDGE.allowed()}")
+        if not validate.Text().ok(v.models_dir):
+            raise UserError(f"{where}.models_dir={v.models_dir}: must be {validate.Text().allowed()}")
+        taken.add(v.name)
+    return list(cfg.variants)
 
 
 def sources(cfg) -> dict:
-    """{name: (source, settings)} of every source in cfg.sources whose models exist (the others skipped, as
-    evaluate-interaction skips them, with one line) and the oracle, on mpc=interactive."""
+    """{name: (source, settings)} on mpc=interactive of every source in cfg.sources whose models exist (the others
+    skipped, as evaluate-interaction skips them, with one line), every variant (a UserError naming it where its models
+    do not load: it was asked for by folder) and the oracle."""
+    judges = [(name, name, cfg.models_dir, None) for name in cfg.sources]
+    judges += [(v.name, v.gradients, v.models_dir, f"variants[{i}].models_dir") for i, v in enumerate(variants(cfg))]
     out = {}
-    for name in [*cfg.sources, "oracle"]:
-        over = [f"gradients={name}", "mpc=interactive", f"models_dir={cfg.models_dir}", *cfg.planner]
+    for name, gradients, models_dir, key in [*judges, ("oracle", "oracle", cfg.models_dir, None)]:
+        over = [f"gradients={gradients}", "mpc=interactive", f"models_dir={models_dir}", *cfg.planner]
         pc = setup.planner_config(cfg.scenario.name, over + (["predictor=oracle"] if name == "oracle" else []))
         try:
             out[name] = setup.setup(pc)[1:]
         except UserError as e:
+            if key is not None:
+                raise UserError(f"{key}={models_dir}: {e}") from e
             print(f"{name}: skipped ({e})")
     return out
 
@@ -101,7 +137,7 @@ def run(cfg) -> dict:
 def scores(rows, resamples: int, seed: int) -> dict:
     """The module doc's scores with their 95% intervals (x_lo, x_hi) over one source's per-state rows."""
     share = lambda x: float(np.mean(x)) if len(x) else float("nan")
-    cand = {"false_alarm": [~r["good"][r["true_good"]] for r in rows],
+    cand = {"good_kept": [r["good"][r["true_good"]] for r in rows], "false_alarm": [~r["good"][r["true_good"]] for r in rows],
             "miss": [r["good"][r["true_merge"] & ~r["true_good"]] for r in rows],
             "brake_fa": [r["brake"][r["true_brake"] < FORCED] > r["b_c"] for r in rows],
             "fa_unsafe": [r["unsafe"][r["true_good"]] for r in rows],
