@@ -1,7 +1,8 @@
 """`results` (`make results`): every table and figure of results/ (the README's headline among them), from scratch.
 
 Three parts: the job plan (bench/results_plan.py: the dataset; per training seed k the teacher, the student and the
-surrogate into <work_dir>/models/seed<k>; the interaction benchmark per training; the planner's held-out batches (dense
+surrogate into <work_dir>/models/seed<k>; the interaction benchmark per training; the interactive step's verdicts
+(bench/verdicts.py) of every training's fidelity predictors on the same held-out states; the planner's held-out batches (dense
 traffic, the headline; random merges; the Table II scenarios) of every gradient source with both methods, once per
 training for the trained sources and once for cv and analytic; the cooperation sweep's dense batches at the other
 levels, first training alone; after them, the clairvoyant ceiling on the same dense worlds, on the calibration scenarios,
@@ -46,7 +47,17 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from bench import breakdown
-from bench.results_plan import INTERACTIVE, ORACLE, build_plan, dense_sources, label, swept, variants, with_options
+from bench.results_plan import (
+    INTERACTIVE,
+    ORACLE,
+    build_plan,
+    dense_sources,
+    label,
+    swept,
+    variants,
+    verdict_judges,
+    with_options,
+)
 from bench.results_plots import accuracy_plot, bar_plot, braking_plot, cooperation_plot, fidelity_plot
 from bench.results_tables import (
     GRADIENT_ROWS,
@@ -83,7 +94,8 @@ GRADIENTS = ("jac_rel_err", "grad_cosine", "grad_rel_err", "react_rel_err", "rea
              "ramp_react_rel_err")
 INTERACTION = ("react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac", "brake_corr",
                "brake_auc", "brake_fa")
-FIDELITY = ("brake_auc", "react_corr")  # the interaction benchmark's scores the fidelity figure ranks predictors by
+FIDELITY = {"brake_auc": "interaction benchmark", "react_corr": "interaction benchmark",
+            "good_kept": "bench.verdicts, the step's own candidates"}  # the scores the fidelity figure ranks predictors by
 SEARCHES = {"ceiling": "ceiling", "never_yield": "never-yield ceiling", "blind": "best fixed strategy"}  # the ceiling's
 # searches and their row names; the dense ceiling's best fixed strategy only with results_preset.blind_episodes > 0
 
@@ -252,12 +264,14 @@ def interaction(r: Report) -> dict:
 
 def fidelity(r: Report) -> list[dict]:
     """Better prediction, better planning: each fidelity row's courteous rate and t_merge on the dense worlds (its
-    batches over trainings) against its predictor's interaction fidelity, Spearman's rank correlation of each score with
-    the courteous rate over the rows the benchmark scored, its interval a bootstrap over worlds; the figure. None
-    without fidelity rows."""
-    scores = {label(s, INTERACTIVE): r.interaction[s] for s in r.p.fidelity_sources}
-    scores |= {label(v.name, INTERACTIVE): over_trainings([r.out[f"evaluate-interaction {v.name}"][v.model]], INTERACTION)
-               for v in variants(r.p)}
+    batches over trainings) against its predictor's fidelity (FIDELITY: the interaction benchmark's scores, the verdicts
+    job's good_kept), Spearman's rank correlation of each score with the courteous rate over the rows that score has,
+    its interval a bootstrap over worlds; the figure. None without fidelity rows."""
+    # good_kept over the source's judges, one per training: a t interval over trainings, with one the job's own
+    kept = lambda names: gradient_row([r.out["verdicts"].get(n, {}) for n in names], "", ("good_kept",))
+    scores = {label(s, INTERACTIVE): {**r.interaction[s], **kept(verdict_judges(r.p, s))} for s in r.p.fidelity_sources}
+    scores |= {label(v.name, INTERACTIVE): {**over_trainings([r.out[f"evaluate-interaction {v.name}"][v.model]],
+                                                             INTERACTION), **kept([v.name])} for v in variants(r.p)}
     if not scores:
         return []
     rows = r.batch_rows("dense", scores)
@@ -272,20 +286,24 @@ def fidelity(r: Report) -> list[dict]:
                                        r.cfg.bootstrap.resamples, r.stream("fidelity", score))
         n[score] = len(scored)
     oracle = r.dense_rows.get((label("oracle", ORACLE), "admm"))
-    fidelity_plot({name: {**scores[name], "row": rows[name, "admm"]} for name in scores}, rhos, oracle,
+    fidelity_plot({name: {**scores[name], "row": rows[name, "admm"]} for name in scores}, rhos, FIDELITY, oracle,
                   r.dest / "fidelity.png")
     table = markdown(["predictor", "trainings x worlds", *(f"{k} [95% CI]" for k in FIDELITY), "courteous % [95% CI]",
                       "t_merge steps [95% CI]"],
                      [[name, size(rows[name, "admm"]), *(fmt(scores[name][k][0], ".3f", *scores[name][k][1:]) for k in FIDELITY),
                        pct(rows[name, "admm"], "courteous"), ci(rows[name, "admm"], "t_merge")] for name in scores])
+    judged, reference = job_config("verdicts", [f"seed_offset={r.p.verdicts_seed}", *r.p.verdicts]), r.out["verdicts"]["oracle"]
     return [{"episodes": r.p.dense_episodes, "planner_seed": r.cfg.planner_seed, "resamples": r.cfg.bootstrap.resamples,
-             "table": "\n".join(table), "worlds": len(seeds),
+             "table": "\n".join(table), "worlds": len(seeds), "verdict_worlds": judged.worlds,
+             "verdict_seed": judged.seed_offset, "every": judged.every, "states": reference["states"],
+             "with_good": reference["states_with_good"],
              "rhos": "; ".join(f"{k}: rho = {fmt(rhos[k][0], '.2f', *rhos[k][1:])} over {n[k]} predictors" for k in FIDELITY)
              + " ('-': undefined, every rate or every score equal)" * any(np.isnan(v[0]) for v in rhos.values()),
              "oracle": "" if oracle is None else (
                  f"The oracle row (`oracle interactive`, the world itself as predictor: courteous {pct(oracle, 'courteous')} % "
                  f"on the first {oracle['episodes']} of these worlds) is the figure's dashed line and stays out of the "
-                 "correlation: the interaction benchmark cannot score the running world as a predictor.")}]
+                 "correlation: the interaction benchmark cannot score the running world as a predictor, and good_kept "
+                 "takes its verdicts as the truth.")}]
 
 
 def random_merges(r: Report) -> dict:

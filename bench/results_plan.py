@@ -20,7 +20,8 @@ TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources t
 PRESET = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
           "results_preset.cooperation_episodes": validate.Int(1), "results_preset.oracle_episodes": validate.Int(0),
           # the oracle reads the running world: the interaction benchmark cannot score it, nor so place it on the figure
-          "results_preset.fidelity_sources": validate.ListOf(validate.OneOf(available(needs_world=False)))}
+          "results_preset.fidelity_sources": validate.ListOf(validate.OneOf(available(needs_world=False))),
+          "results_preset.verdicts": validate.OVERRIDES, "results_preset.verdicts_seed": validate.SEED}
 ORACLE = ["mpc=interactive", "method=admm", "predictor=oracle"]  # the dense row whose predictor is the world itself
 INTERACTIVE = ["mpc=interactive", "method=admm"]  # the fidelity figure's rows: the interactive step, ADMM alone
 VARIANT = ("name", "model", "overrides")  # the keys of a fidelity variant
@@ -53,12 +54,59 @@ def check_seeds(cfg, interaction_cfg) -> range:
     p = cfg.results_preset
     n = max(p.episodes, p.table2_episodes, p.dense_episodes, p.calibration_episodes, p.cooperation_episodes)
     seeds = heldout_seeds("planner_seed", cfg.planner_seed, n, interaction_cfg.dataset)
-    lo = interaction_cfg.seed_offset
-    hi = lo + interaction_cfg.states * interaction_cfg.branch.tries
-    if seeds.start < hi and lo < seeds.stop:
+    other = interaction_worlds(interaction_cfg)
+    if seeds.start < other.stop and other.start < seeds.stop:
         raise UserError(f"planner_seed={cfg.planner_seed}: planner seeds {seeds.start}..{seeds.stop - 1} overlap the "
-                        f"interaction benchmark's {lo}..{hi - 1}; choose another planner_seed")
+                        f"interaction benchmark's {other.start}..{other.stop - 1}; choose another planner_seed")
     return seeds
+
+
+def interaction_worlds(interaction_cfg) -> range:
+    """The world seeds the interaction benchmark may draw its branch states from."""
+    return range(interaction_cfg.seed_offset, interaction_cfg.seed_offset + interaction_cfg.states * interaction_cfg.branch.tries)
+
+
+def verdict_judges(p, source: str) -> list[str]:
+    """The names of a fidelity source's judges in the verdicts job, one per training that trains it: the first
+    training's under the source's own name, training k's `<source>_seed<k>`; an untrained source's once."""
+    return [source, *(f"{source}_seed{k}" for k in p.training_seeds[1:])] if source in TRAINED else [source]
+
+
+def verdicts_config(cfg, work: Path, models, fidelity: list):
+    """The `python -m bench.verdicts` job of the fidelity figure: every fidelity source of every training and every
+    fidelity variant (verdict_judges' names) judged on the same states of results_preset.verdicts_seed's worlds, the
+    planner batches' overrides first; a UserError naming results_preset.verdicts for a bad value there."""
+    from bench import verdicts
+
+    p = cfg.results_preset
+    first = p.training_seeds[0]
+    job = job_config("verdicts", [
+        f"dataset={p.dataset}", f"models_dir={models(first)}", f"out_dir={work / 'verdicts'}",
+        f"seed_offset={p.verdicts_seed}", f"sources=[{','.join(p.fidelity_sources)}]",
+        f"resamples={cfg.bootstrap.resamples}", *p.verdicts])
+    # set, not overrides: a list of dicts and the planner's quoted overrides
+    job.variants = [{"name": name, "gradients": s, "models_dir": str(models(k))} for s in p.fidelity_sources
+                    for k, name in zip(p.training_seeds[1:], verdict_judges(p, s)[1:])]
+    job.variants += [{"name": v.name, "gradients": v.model, "models_dir": str(variant_models(work, v.name, first))}
+                     for v in fidelity]
+    job.planner = [*p.planner, *job.planner]
+    try:
+        validate.check(job, verdicts.SCHEMA)
+        verdicts.variants(job)
+    except UserError as e:
+        raise UserError(f"results_preset.verdicts: {e}") from e
+    return job
+
+
+def check_verdicts(job, planner: range, interaction_cfg) -> None:
+    """One UserError naming results_preset.verdicts_seed if the verdicts' worlds were the dataset's, the planner's or the
+    interaction benchmark's."""
+    seeds = heldout_seeds("results_preset.verdicts_seed", job.seed_offset, job.worlds, job.dataset)
+    for name, other in (("planner", planner), ("interaction benchmark", interaction_worlds(interaction_cfg))):
+        if seeds.start < other.stop and other.start < seeds.stop:
+            raise UserError(f"results_preset.verdicts_seed={job.seed_offset}: the verdicts' worlds {seeds.start}.."
+                            f"{seeds.stop - 1} overlap the {name}'s {other.start}..{other.stop - 1}; choose another "
+                            f"results_preset.verdicts_seed")
 
 
 def ceiling_worlds(p) -> dict:
@@ -142,7 +190,7 @@ def variant_models(work: Path, name: str, k) -> Path:
 def build_plan(cfg, work: Path):
     """The preset's jobs (Plan) and the planner batches' output folders {(scenario, row, seed k or None): folder}; the
     cooperation sweep's batches under scenario swept(level), of the first training alone."""
-    from bench import interaction, step_time
+    from bench import interaction, step_time, verdicts
     from data import cli as data_cli
     from planner import cli as planner_cli
     from planner.setup import planner_config
@@ -183,7 +231,10 @@ def build_plan(cfg, work: Path):
         plan.add(f"evaluate-interaction {v.name}", interaction.run, job_config("evaluate_interaction", [
             f"dataset={p.dataset}", f"models_dir={variant_models(work, v.name, first_seed)}",
             f"out_dir={work / 'interaction' / v.name}", f"sources=[{v.model}]", *p.interaction]))
-    check_seeds(cfg, interaction_cfgs[p.training_seeds[0]])
+    # the fidelity figure's good_kept: one job, so every training and variant is judged on the same states
+    judged = verdicts_config(cfg, work, models, fidelity)
+    check_verdicts(judged, check_seeds(cfg, interaction_cfgs[first_seed]), interaction_cfgs[first_seed])
+    plan.add("verdicts", verdicts.run, judged)
     options = mpc_overrides(p.mpc_options)
     every, first = list(p.training_seeds), list(p.training_seeds[:1])
     runs = [("dense", s, p.dense_episodes, extra, every) for extra in options for s in p.sources] + \

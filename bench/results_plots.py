@@ -110,11 +110,11 @@ def cooperation_plot(rates: dict, levels, path: Path):
     plt.close(fig)
 
 
-def fidelity_plot(points: dict, rhos: dict, oracle: dict | None, path: Path):
-    """Courteous-merge rate (%) and t_merge (steps) against interaction fidelity, a column per score (brake_auc,
-    react_corr): a point per predictor ({name: {score: (mean, lo, hi), "row": outcomes row}}) with its 95% intervals
-    both ways; Spearman's rho of each score ({score: (rho, lo, hi)}) in its title; the oracle's rate (a row, or None),
-    which the benchmark cannot score, as a dashed line."""
+def fidelity_plot(points: dict, rhos: dict, where: dict, oracle: dict | None, path: Path):
+    """Courteous-merge rate (%) and t_merge (steps) against fidelity, a column per score of rhos (brake_auc, react_corr,
+    good_kept), labelled with where it comes from ({score: its job}): a point per predictor ({name: {score: (mean, lo,
+    hi), "row": outcomes row}}) with its 95% intervals both ways; Spearman's rho of each score ({score: (rho, lo, hi)})
+    in its title; the oracle's rate (a row, or None), which the scores cannot rank, as a dashed line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -135,11 +135,11 @@ def fidelity_plot(points: dict, rhos: dict, oracle: dict | None, path: Path):
             if oracle is not None and i == 0:
                 ax.axhline(100 * oracle["courteous"], color="k", ls="--", lw=1,
                            label=f"oracle interactive ({oracle['episodes']} worlds; not scored)")
-            ax.set(xlabel=f"{score} (interaction benchmark)", ylabel=ylabel)
+            ax.set(xlabel=f"{score} ({where[score]})", ylabel=ylabel)
             ax.grid(alpha=0.3)
         axes[0, j].set_title(f"Spearman's rho = {compare.fmt(rho, '.2f', lo, hi)} (95% CI over worlds)", fontsize=9)
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle("the interactive step: planning outcome against interaction fidelity, 95% CI")
+    fig.suptitle("the interactive step: planning outcome against the predictor's fidelity, 95% CI")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

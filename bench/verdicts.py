@@ -114,6 +114,7 @@ def visited(cfg, driver, seed: int):
 
 def run(cfg) -> dict:
     """{source: scores} over the states visited on cfg.worlds held-out worlds; writes <out_dir>/verdicts.csv."""
+    path = writable(Path(cfg.out_dir), "out_dir") / "verdicts.csv"
     judges = sources(cfg)
     pc = setup.planner_config(cfg.scenario.name, [f"gradients={cfg.drive}", "mpc=interactive", "method=admm",
                                                   f"models_dir={cfg.models_dir}", *cfg.planner])
@@ -131,7 +132,9 @@ def run(cfg) -> dict:
                 per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,
                                         "true_merge": true_merge, "brake": brake, "true_brake": true_brake,
                                         "first": order[0], "b_c": s_.b_courtesy, "unsafe": unsafe})
-    return {name: scores(rows, cfg.resamples, cfg.seed_offset) for name, rows in per_state.items()}
+    table = {name: scores(rows, cfg.resamples, cfg.seed_offset) for name, rows in per_state.items()}
+    write(path, table)
+    return table
 
 
 def scores(rows, resamples: int, seed: int) -> dict:
@@ -174,13 +177,11 @@ def main(overrides=()) -> dict:
     """Score, write <out_dir>/verdicts.csv, print the table; returns it."""
     cfg = job_config("verdicts", overrides)
     validate.check(cfg, SCHEMA)
-    path = writable(Path(cfg.out_dir), "out_dir") / "verdicts.csv"
     table = run(cfg)
-    write(path, table)
     pct = lambda r, k: f"{100 * r[k]:.1f} [{100 * r[k + '_lo']:.1f}, {100 * r[k + '_hi']:.1f}]"
     print(f"{table['oracle']['states']} states that mpc=interactive with {cfg.drive} visits on {cfg.worlds} held-out "
           f"{cfg.scenario.name} worlds (seeds from {cfg.seed_offset}), every {cfg.every}th step; "
-          f"{table['oracle']['states_with_good']} have a good merge by the world's verdict; {path}")
+          f"{table['oracle']['states_with_good']} have a good merge by the world's verdict; {cfg.out_dir}/verdicts.csv")
     print("| source | false alarm % | of them unsafe % | for braking % | miss % | brake false alarm % "
           "| takes a good merge % | takes a bad merge % |")
     print("|---|---|---|---|---|---|---|---|")

@@ -13,6 +13,7 @@ from bench import results
 from bench.results_tables import beaten, outcome_table
 from conftest import compose_cfg
 from data.dataset import episode_seeds
+from planner.compare import fmt
 
 
 def test_planner_seeds_that_were_dataset_episodes_are_refused(tmp_path, capsys):
@@ -290,7 +291,7 @@ def test_spearman_rank_correlation_and_its_world_bootstrap_match_a_direct_comput
 
 
 def test_tiny_fidelity_section_puts_each_predictor_s_interactive_batch_beside_its_interaction_scores(tiny):
-    _, work, md, _ = tiny
+    _, work, md, (_, out, _, _, _) = tiny
     text = section(md, "Fidelity against outcome")
     assert "![fidelity against outcome](fidelity.png)" in text
     rows = {}
@@ -298,8 +299,15 @@ def test_tiny_fidelity_section_puts_each_predictor_s_interactive_batch_beside_it
         name = f"{source} interactive"
         eps = [e for f in (work / "planner" / "dense" / name).glob("*") for e in episodes_csv(str(f), "admm")]
         assert [e["seed"] for e in eps] == [2000000, 2000001]
-        assert numbers(cell(md, "Fidelity against outcome", name, "1 x 2", 4)) == pytest.approx(
+        assert numbers(cell(md, "Fidelity against outcome", name, "1 x 2", 5)) == pytest.approx(
             rate_cell([e["courteous"] for e in eps]), abs=0.051)
+        judged = next(r for r in csv.DictReader(open(work / "verdicts" / "verdicts.csv")) if r["source"] == source)
+        kept = [float(judged[f"good_kept{e}"]) for e in ("", "_lo", "_hi")]  # one training: the job's own interval
+        assert kept == pytest.approx([1 - float(judged["false_alarm"]), 1 - float(judged["false_alarm_hi"]),
+                                      1 - float(judged["false_alarm_lo"])], abs=2e-4)
+        assert cell(md, "Fidelity against outcome", name, "1 x 2", 4) == fmt(
+            out["verdicts"][source]["good_kept"], ".3f", out["verdicts"][source]["good_kept_lo"],
+            out["verdicts"][source]["good_kept_hi"])
         shown = next(line for line in section(md, "Interaction fidelity").splitlines() if line.startswith(f"| {source} |"))
         for column, score in ((2, "brake_auc"), (3, "react_corr")):
             mine = cell(md, "Fidelity against outcome", name, "1 x 2", column)
@@ -308,3 +316,4 @@ def test_tiny_fidelity_section_puts_each_predictor_s_interactive_batch_beside_it
     (x1, y1), (x2, y2) = rows.values()  # two predictors: rho is the sign of their order's agreement, none for a tie
     rho = "-" if x1 == x2 or y1 == y2 else f"{np.sign((x2 - x1) * (y2 - y1)):.2f}"
     assert f"brake_auc: rho = {rho}" in text and "over 2 predictors" in text
+    assert "good_kept: rho = " in text and f"{out['verdicts']['oracle']['states']} states, one every 2 steps" in text

@@ -108,7 +108,26 @@ def test_fidelity_rows_reuse_the_headline_s_interactive_batches_and_graded_varia
         assert labels.index(f"planner dense {name} interactive seed 0") < labels.index("ceiling dense")
 
 
+def test_one_verdicts_job_judges_every_training_and_variant_on_held_out_worlds_after_their_models(tmp_path):
+    labels, jobs, _ = tiny_plan(tmp_path, "results_preset.training_seeds=[0,1]", VARIANTS)
+    job = jobs["verdicts"]
+    assert list(job.sources) == ["cv", "student"] and job.models_dir == str(tmp_path / "models" / "seed0")
+    assert [dict(v) for v in job.variants] == [
+        {"name": "student_seed1", "gradients": "student", "models_dir": str(tmp_path / "models" / "seed1")},
+        {"name": "teacher_half", "gradients": "teacher", "models_dir": jobs["distill teacher teacher_half seed 0"].models_dir},
+        {"name": "student_narrow", "gradients": "student", "models_dir": jobs["distill student student_narrow seed 0"].models_dir}]
+    assert (job.worlds, job.every, job.seed_offset, job.dataset.name) == (1, 2, 2500000, "tiny")
+    assert list(job.planner) == ["max_steps=6"]  # the step the fidelity rows plan with
+    assert labels.index("verdicts") > max(labels.index(f"distill {m}") for m in (
+        "student seed 1", "teacher teacher_half seed 0", "student student_narrow seed 0"))
+
+
 @pytest.mark.parametrize("override, message", [
+    ("results_preset.verdicts_seed=2000000", r"^results_preset.verdicts_seed=2000000: the verdicts' worlds "
+                                             r"2000000..2000000 overlap the planner's 2000000..2000003; choose another"),
+    ("results_preset.verdicts_seed=1000000", r"^results_preset.verdicts_seed=1000000: the verdicts' worlds "
+                                             r"1000000..1000000 overlap the interaction benchmark's 1000000\.\."),
+    ("results_preset.verdicts=['worlds=0']", r"^results_preset.verdicts: worlds=0: must be an integer >= 1$"),
     ("results_preset.fidelity_sources=[oracle]", r"^results_preset.fidelity_sources=\['oracle'\]: must be"),
     ("results_preset.fidelity_sources=[teacher]", r"^results_preset.fidelity_sources: teacher not in "
                                                   r"results_preset.interaction_sources"),
