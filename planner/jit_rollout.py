@@ -140,13 +140,12 @@ def surrogate_rollout(teacher, jnet, history, ego):
     in float32 (surrogate.kernels) on every window after the observed one (whose J meets a zero derivative)."""
     T_p = len(ego)
     T_obs, M, _ = history.shape
-    values, windows, window = np.empty((T_p, M, 2)), np.empty((T_p, T_obs, M, 2), dtype=np.float32), history
+    values, Js, window = np.empty((T_p, M, 2)), np.zeros((T_p, 2 * M, T_obs * 2 * M)), history
     for tau in range(T_p):
-        windows[tau] = window.astype(np.float32)
-        window = step_window(window, teacher_next(teacher, windows[tau]).astype(np.float64), ego[tau])
-        values[tau] = window[-1]
-    Js = np.zeros((T_p, 2 * M, T_obs * 2 * M))
-    Js[1:] = jacobian_net(jnet, windows[1:])  # every window after the observed one in one batch
+        w32 = window.astype(np.float32)
+        J = jacobian_net(jnet, w32).astype(np.float64) if tau > 0 else Js[0]
+        window = step_window(window, teacher_next(teacher, w32).astype(np.float64), ego[tau])
+        keep(Js, values, tau, J, window)
     return values, chain_rule(Js, T_obs)
 
 

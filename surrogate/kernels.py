@@ -160,23 +160,21 @@ def jacobian_weights(model, T_obs, M) -> JacobianWeights | None:
 
 
 @njit(cache=True)
-def jacobian_net(w, windows):
-    """JacobianNet.forward of float32 windows (B, T_obs, M, 2) m: the learned local J (B, M*2, T_obs*M*2) m/m, float32;
-    the batch's layers as matrix products (a rollout's windows at once, as the Python path's one onnxruntime call)."""
-    B, T, M, _ = windows.shape
+def jacobian_net(w, window):
+    """JacobianNet.forward of one float32 window (T_obs, M, 2) m: the learned local J (M*2, T_obs*M*2) m/m, float32."""
+    T, M, _ = window.shape
     one = np.float32(1.0)
-    x = np.empty((B, len(w.x_mean)), dtype=np.float32)  # network.JacobianNet.features' order
-    for b in range(B):
-        window = windows[b]
-        anchor = window[-1, 0]
-        vel = window[1:] - window[:-1]
-        x[b, :2 * M] = (window[-1] - anchor).reshape(-1)
-        x[b, 2 * M:2 * M * T] = vel.reshape(-1)
-        x[b, 2 * M * T:2 * M * (2 * T - 2)] = (vel[1:] - vel[:-1]).reshape(-1)
-        for a in range(len(w.axes)):
-            x[b, 2 * M * (2 * T - 2) + a] = anchor[w.axes[a]]
+    anchor = window[-1, 0]
+    vel = window[1:] - window[:-1]
+    acc = vel[1:] - vel[:-1]
+    x = np.empty(len(w.x_mean), dtype=np.float32)  # network.JacobianNet.features' order
+    x[:2 * M] = (window[-1] - anchor).reshape(-1)
+    x[2 * M:2 * M * T] = vel.reshape(-1)
+    x[2 * M * T:2 * M * (2 * T - 2)] = acc.reshape(-1)
+    for a in range(len(w.axes)):
+        x[2 * M * (2 * T - 2) + a] = anchor[w.axes[a]]
     h = (np.minimum(np.maximum(x, w.x_lo), w.x_hi) - w.x_mean) / w.x_std
     for k in range(len(w.Ws) - 1):
         a = h @ w.Ws[k] + w.bs[k]
         h = a / (one + np.exp(-a))  # SiLU
-    return (w.J_mean + w.J_std * (h @ w.Ws[-1] + w.bs[-1])).reshape(B, 2 * M, 2 * M * T)
+    return (w.J_mean + w.J_std * (h @ w.Ws[-1] + w.bs[-1])).reshape(2 * M, 2 * M * T)
