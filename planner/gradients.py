@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from core.jobs import CONF_DIR, UserError, atomic_file, options
 from core.rollout import react, rollout, rollout_jacobian
 from core.validate import TRAINED_PREDICTORS
-from surrogate.kernels import compiled_phi, compiled_teacher
+from surrogate.kernels import compiled_phi
 
 COMPILED_PREDICTORS = ("cv", "student")  # the predictors whose rollout planner.jit_rollout writes as numba kernels
 
@@ -81,8 +81,6 @@ class Surrogate(Source):
         self.joint = surrogate.fused  # a fused export gives values and J from one file, J for a whole rollout in one call
         self.seen = (None, {})  # (history, {window bytes: next xy}) of the step being planned
         self.forward = compiled_phi(predictor) or (surrogate.phi if surrogate.fused else predictor.phi)
-        teacher = compiled_teacher(predictor)  # both networks as kernels: the compiled core's jacobian (jit_rollout)
-        self.kernels = None if teacher is None or surrogate.weights is None else (teacher, surrogate.weights)
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2): the teacher's network in float64 by a numba kernel (surrogate.kernels: ~2x faster than
@@ -218,7 +216,6 @@ class Recording:
     it runs neither compiled nor by its local Jacobians: the step takes the Python path that calls `jacobian`."""
 
     compiled = False
-    kernels = None  # nor the surrogate's compiled rollout
 
     def __init__(self, source):
         self.source, self.histories, self.plans = source, [], []

@@ -1,6 +1,5 @@
 """Compiled (numba) Remark-2 rollout with its exact chain rule for the predictors the compiled core runs itself (constant
-velocity and the GELU student from its float64 weights), the surrogate's (the teacher's values, the J network's local
-Jacobians), and b_i with its Jacobian about a linearisation; the layouts of
+velocity and the GELU student from its float64 weights), and b_i with its Jacobian about a linearisation; the layouts of
 core.rollout (metres throughout), which stays the tested reference."""
 import math
 from functools import lru_cache
@@ -13,7 +12,6 @@ from numba.typed import List
 from core.rollout import rollout_jacobian
 from planner import safety
 from planner.jit_linalg import matmul, matvec
-from surrogate.kernels import jacobian_net, teacher_next
 
 
 @njit(cache=True)
@@ -133,22 +131,6 @@ def student_rollout(Ws, bs, s, history, ego):
     return values, chain_rule(Js, T_obs)
 
 
-@njit(cache=True)
-def surrogate_rollout(teacher, jnet, history, ego):
-    """The surrogate source's rollout (planner.gradients.Surrogate.jacobian): the teacher's values (T_p, SLOTS, 2) and
-    d values / d ego plan (T_p, SLOTS, 2, T_p, 2) by the chain rule over the J network's local Jacobians, both networks
-    in float32 (surrogate.kernels) on every window after the observed one (whose J meets a zero derivative)."""
-    T_p = len(ego)
-    T_obs, M, _ = history.shape
-    values, Js, window = np.empty((T_p, M, 2)), np.zeros((T_p, 2 * M, T_obs * 2 * M)), history
-    for tau in range(T_p):
-        w32 = window.astype(np.float32)
-        J = jacobian_net(jnet, w32).astype(np.float64) if tau > 0 else Js[0]
-        window = step_window(window, teacher_next(teacher, w32).astype(np.float64), ego[tau])
-        keep(Js, values, tau, J, window)
-    return values, chain_rule(Js, T_obs)
-
-
 @njit(cache=True, inline="always")
 def predicted(Ws, bs, s, history, ego):
     """Rollout values (T_p, SLOTS, 2) and d values / d ego plan (T_p, SLOTS, 2, T_p, 2) of a predictor the compiled core
@@ -193,21 +175,17 @@ def compiled_params(source):
 
 
 def compiled_jacobian(source):
-    """jacobian(history, ego) -> (values, d values / d ego) compiled for the sources of compiled_params and for a
-    surrogate whose networks have kernels (its `kernels`: one compiled call per linearisation); None for the others,
-    whose own `jacobian` the compiled core calls."""
+    """jacobian(history, ego) -> (values, d values / d ego) compiled for the sources of compiled_params; None for the
+    others, whose own `jacobian` the compiled core calls."""
     params = compiled_params(source)
     if params is None:
-        kernels = getattr(source, "kernels", None)
-        return None if kernels is None else lambda history, ego: surrogate_rollout(
-            *kernels, np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
+        return None
     return lambda history, ego: predicted(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))
 
 
 def values(source, history, ego):
-    """planner.safety.values, by the compiled rollout for a source that runs compiled (values and J in ~0.1 ms); the
-    surrogate's values alone from its own memo (its J network is not needed)."""
-    compiled = compiled_jacobian(source) if source.compiled else None
+    """planner.safety.values, by the compiled rollout for a source that runs compiled (values and J in ~0.1 ms)."""
+    compiled = compiled_jacobian(source)
     return compiled(history, ego)[0] if compiled else safety.values(source, history, ego)
 
 

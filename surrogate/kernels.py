@@ -1,7 +1,6 @@
-"""The teacher's forward pass (distill.teacher.SocialTeacher) and the surrogate's J network (surrogate.network) as numba
-kernels in float32, the networks' own precision: the surrogate source's rollout values and local Jacobians one window at
-a time inside the compiled planner core (planner.jit_rollout), the teacher about twice as fast as onnxruntime's graph
-of ~470 nodes at batch 1 (one core, 84 against 171 us); each equal to its network to float32 rounding."""
+"""The teacher's forward pass (distill.teacher.SocialTeacher) as a numba kernel in float32, the network's own precision:
+the surrogate source's rollout values one window at a time, about twice as fast as onnxruntime's graph of ~470 nodes at
+batch 1 (one core, 84 against 171 us), and equal to the torch network to float32 rounding."""
 from typing import NamedTuple
 
 import numpy as np
@@ -107,74 +106,12 @@ def teacher_phi(w, windows):
     return out
 
 
-def compiled_teacher(predictor) -> TeacherWeights | None:
-    """The kernel's weights of a predictor whose network is a SocialTeacher; None for the others."""
-    from distill.teacher import SocialTeacher
-
-    module = getattr(predictor, "module", None)
-    return teacher_weights(module) if isinstance(module, SocialTeacher) else None
-
-
 def compiled_phi(predictor):
     """phi(windows (B, T_obs, M, 2) m) -> next xy (B, M, 2) m, float64, by the kernel for a predictor whose network is
     a SocialTeacher; None for the others."""
-    weights = compiled_teacher(predictor)
-    return None if weights is None else \
-        lambda window: teacher_phi(weights, np.ascontiguousarray(window, dtype=np.float32))
+    from distill.teacher import SocialTeacher
 
-
-class JacobianWeights(NamedTuple):
-    """A JacobianNet's weights in float32 (surrogate.network), each Linear's W transposed (in, out): the feature box and
-    statistics, the target statistics, the MLP's layers (SiLU between), the ego's absolute axes it reads (0: x, 1: y)."""
-
-    x_lo: np.ndarray
-    x_hi: np.ndarray
-    x_mean: np.ndarray
-    x_std: np.ndarray
-    J_mean: np.ndarray
-    J_std: np.ndarray
-    Ws: tuple
-    bs: tuple
-    axes: np.ndarray
-
-
-def jacobian_weights(model, T_obs, M) -> JacobianWeights | None:
-    """The kernel's weights of the JacobianNet in an ONNX model of window (B, T_obs, M, 2) (its initialisers, named as
-    the module's state_dict, the fused export's under `surrogate.`); None if the export renamed them."""
-    from onnx import numpy_helper
-
-    found = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
-    prefix = next((name[:-len("x_mean")] for name in found if name.endswith("x_mean")), None)
-    layers = sorted(int(k[len(f"{prefix}net."):-len(".weight")]) for k in found
-                    if prefix is not None and k.startswith(f"{prefix}net.") and k.endswith(".weight"))
-    if not layers:
+    if not isinstance(getattr(predictor, "module", None), SocialTeacher):
         return None
-
-    def get(name):
-        return np.ascontiguousarray(found[prefix + name], dtype=np.float32)
-
-    n_abs = len(get("x_mean")) - (2 * T_obs - 2) * 2 * M  # the ego's absolute axes: "" , "y" or "xy" (network.AXES)
-    return JacobianWeights(get("x_lo"), get("x_hi"), get("x_mean"), get("x_std"), get("J_mean"), get("J_std"),
-                           tuple(np.ascontiguousarray(get(f"net.{k}.weight").T) for k in layers),
-                           tuple(get(f"net.{k}.bias") for k in layers), np.arange(2 - n_abs, 2, dtype=np.int64))
-
-
-@njit(cache=True)
-def jacobian_net(w, window):
-    """JacobianNet.forward of one float32 window (T_obs, M, 2) m: the learned local J (M*2, T_obs*M*2) m/m, float32."""
-    T, M, _ = window.shape
-    one = np.float32(1.0)
-    anchor = window[-1, 0]
-    vel = window[1:] - window[:-1]
-    acc = vel[1:] - vel[:-1]
-    x = np.empty(len(w.x_mean), dtype=np.float32)  # network.JacobianNet.features' order
-    x[:2 * M] = (window[-1] - anchor).reshape(-1)
-    x[2 * M:2 * M * T] = vel.reshape(-1)
-    x[2 * M * T:2 * M * (2 * T - 2)] = acc.reshape(-1)
-    for a in range(len(w.axes)):
-        x[2 * M * (2 * T - 2) + a] = anchor[w.axes[a]]
-    h = (np.minimum(np.maximum(x, w.x_lo), w.x_hi) - w.x_mean) / w.x_std
-    for k in range(len(w.Ws) - 1):
-        a = h @ w.Ws[k] + w.bs[k]
-        h = a / (one + np.exp(-a))  # SiLU
-    return (w.J_mean + w.J_std * (h @ w.Ws[-1] + w.bs[-1])).reshape(2 * M, 2 * M * T)
+    weights = teacher_weights(predictor.module)
+    return lambda window: teacher_phi(weights, np.ascontiguousarray(window, dtype=np.float32))

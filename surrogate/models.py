@@ -8,16 +8,14 @@ from onnx.utils import Extractor
 from core.jobs import MissingModel, UserError, recover
 from distill.export import onnx_session
 from distill.models import check_finite, probe_window
-from surrogate.kernels import jacobian_weights
 
 
 class Surrogate:
     """An onnxruntime session: `.jac(window)` -> J (B, SLOTS*2, T_obs*SLOTS*2) m/m float64, `.source` its teacher; a fused
-    export also `.phi(window)`, the source's next xy, each from its own half of the graph (`halves`); `.weights` the J
-    network's for surrogate.kernels.jacobian_net (None if the export renamed them)."""
+    export also `.phi(window)`, the source's next xy, each from its own half of the graph (`halves`)."""
 
-    def __init__(self, session, source, path, halves=None, weights=None):
-        self.session, self.source, self.path, self.weights = session, source, path, weights
+    def __init__(self, session, source, path, halves=None):
+        self.session, self.source, self.path = session, source, path
         self.name = "surrogate"
         self.fused = "next" in [o.name for o in session.get_outputs()]
         self.halves = halves or {"J": session}  # output name -> the session that computes it alone
@@ -42,11 +40,11 @@ class Surrogate:
         return nxt.astype(np.float64), J.astype(np.float64)
 
 
-def halves(path, model, advice) -> dict:
-    """{output name: a session on the part of the fused graph (`model`, read from `path`) that computes it}: onnxruntime
-    runs every node of a graph whatever outputs a call asks for, so values alone (a safeguard check, a rollout's
-    recursion) would pay for J and a batch of J for the source's forward pass."""
-    extract = Extractor(model).extract_model
+def halves(path, advice) -> dict:
+    """{output name: a session on the part of the fused graph at `path` that computes it}: onnxruntime runs every node of
+    a graph whatever outputs a call asks for, so values alone (a safeguard check, a rollout's recursion) would pay for J
+    and a batch of J for the source's forward pass."""
+    extract = Extractor(onnx.load(str(path))).extract_model
     return {out: onnx_session(path, advice, extract(["window"], [out]).SerializeToString()) for out in ("next", "J")}
 
 
@@ -68,9 +66,7 @@ def load(models_dir, T_obs, n_slots):
     source = session.get_modelmeta().custom_metadata_map.get("source")
     if not source:
         raise UserError(f"{path} does not record the predictor it learned (ONNX metadata `source`); re-run `surrogate`")
-    model = onnx.load(str(path))
-    surrogate = Surrogate(session, source, path, halves(path, model, f"{expected}; re-run `surrogate`")
-                          if "next" in outputs else None, jacobian_weights(model, T_obs, M))
+    surrogate = Surrogate(session, source, path, halves(path, f"{expected}; re-run `surrogate`") if "next" in outputs else None)
     window = probe_window(T_obs, M)
     check_finite(surrogate.phi_jac(window) if surrogate.fused else (surrogate.jac(window),), path, "re-run `surrogate`")
     return surrogate

@@ -101,38 +101,3 @@ def test_the_compiled_teacher_is_the_torch_network_to_float32_rounding(exported,
     history, ego = states[0]
     np.testing.assert_allclose(source.values(history, ego[None]), rollout(teacher.phi, history[None], ego[None]),
                                rtol=0, atol=1e-5)
-
-
-@pytest.fixture(scope="module")
-def teacher_surrogate(tmp_path_factory):
-    """A small random-weight SocialTeacher whose decoder responds, and a JacobianNet (two layers, reading the ego's
-    absolute y) fused with it, exported and loaded as the planner does."""
-    torch.manual_seed(2)
-    net = instantiate(compose_cfg("distill", ["model=teacher"]).model.net, hidden=8, pool=8, decoder=[16, 16])
-    torch.nn.init.normal_(net.decoder[-1].weight, 0.0, 0.5)
-    folder = tmp_path_factory.mktemp("teacher_fused")
-    export(Fused(JacobianNet(T_OBS, SLOTS, 16, 2, "y").eval(), copy.deepcopy(net)), folder / "surrogate.onnx", T_OBS,
-           SLOTS, "teacher")
-    return TorchPredictor("teacher", net.eval()), models.load(folder, T_OBS, SLOTS - 1)
-
-
-def test_the_compiled_surrogate_rollout_is_the_python_paths(teacher_surrogate, states):
-    """planner.jit_rollout.surrogate_rollout (both networks as numba kernels) against Surrogate.jacobian (the teacher's
-    kernel for values, onnxruntime's J half): equal to float32 rounding."""
-    from planner.jit_rollout import compiled_jacobian
-
-    teacher, loaded = teacher_surrogate
-    windows = np.stack([h for h, _ in states]).astype(np.float32)
-    want = loaded.jac(windows)
-    got = np.stack([kernels.jacobian_net(loaded.weights, w) for w in windows])
-    assert np.abs(want - want.mean(0)).max() > 1e-2  # J varies with the window: the network is not at its mean
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
-    source = Surrogate("surrogate", teacher, loaded)
-    compiled = compiled_jacobian(source)
-    assert compiled is not None and compiled_jacobian(Surrogate("surrogate", None, loaded)) is None  # teacher only
-    for history, ego in states:
-        values, grads = compiled(history, ego)
-        want_values, want_grads = source.jacobian(history, ego)
-        assert np.abs(want_grads[:, 1:]).max() > 1e-3  # the others respond to the ego plan
-        np.testing.assert_allclose(values, want_values, rtol=0, atol=1e-9)  # the same float32 teacher kernel
-        np.testing.assert_allclose(grads, want_grads, rtol=0, atol=1e-4 * np.abs(want_grads).max())
