@@ -17,12 +17,12 @@ seen). The frame and action mapping is data.highway's (to_ours, to_action), nowh
 import numpy as np
 
 from core import validate
-from core.jobs import UserError
+from core.jobs import UserError, build
 from data.highway import ENV_ID, DenseMergeEnv, to_action, to_ours
 from data.perception import slot_ids
 from data.world import backfill
 from planner.mpc import Observation
-from planner.setup import build, planner_config, setup
+from planner.setup import planner_config, setup
 
 
 class MergePolicy:

@@ -1,30 +1,14 @@
 """The one place a `planner` config becomes objects: the scenario, the gradient source and the MPC settings, and one
 closed-loop episode of a method; used by the `planner` command, its batch workers, the benchmarks and the tests."""
-from functools import partial
 from pathlib import Path
 
 from hydra.utils import get_class, get_object
 from omegaconf import DictConfig
 
-from core import jobs
-from core.jobs import UserError, job_config
+from core.jobs import UserError, build, job_config
 from distill import certificate
 from planner import closed_loop, mpc
 from planner.gradients import Recording, WorldModel
-
-
-def build(node, **kwargs):
-    """core.jobs.build, with each `_partial_: true` object (a step, its Z-step) a plain functools.partial: the installed
-    Hydra's partial checks its target policy (a sha256 of it included) on every call, ~0.2 ms of a planner step; the
-    target was checked once here, when built."""
-    return plain(jobs.build(node, **kwargs))
-
-
-def plain(obj):
-    """obj; a partial as a plain functools.partial of the same function and arguments, those plain too."""
-    if not isinstance(obj, partial):
-        return obj
-    return partial(obj.func, *map(plain, obj.args), **{k: plain(v) for k, v in obj.keywords.items()})
 
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:

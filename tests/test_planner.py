@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import osqp
 import pytest
+from hydra.utils import instantiate
 from scipy import sparse
 from test_configs import drift
 
@@ -143,12 +144,12 @@ def test_daqp_failure_falls_back(two_lane, sqp):
 
 @pytest.mark.parametrize("core", ["compiled", "reference"])
 def test_built_steps_are_plain_partials_that_answer_as_hydras_own(two_lane, core):
-    """planner.setup.build's step and its Z-step: plain partials (the installed Hydra's partial re-checks its target
-    policy on every call) of the same functions and arguments, with the same plan, control and reason."""
+    """core.jobs.build's step and its Z-step: plain partials (the installed Hydra's partial re-checks its target
+    policy on every call) of the same functions and arguments as Hydra's own, with the same plan, control and reason."""
     scenario, cv, s = two_lane
     s = dataclasses.replace(s, admm=dataclasses.replace(s.admm, core=core))
     node = planner_config("two_lane").solver.step
-    ours, hydras = build(node), jobs.build(node)
+    ours, hydras = build(node), instantiate(node, _convert_="all")
     assert type(ours) is functools.partial and type(ours.keywords["zstep"]) is functools.partial
     assert ours.func is hydras.func is step.mpc_step
     assert (ours.keywords["zstep"].func, ours.keywords["zstep"].keywords) == (hydras.keywords["zstep"].func,
