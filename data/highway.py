@@ -325,6 +325,8 @@ class HighwayScenario(DenseScenario):
 
     safety_stretch: float  # the planner's safety ellipse for these bodies: along-road semi-axis over R (conf/mpc reads
     # it as `stretch`, core.rollout.b_i; scenarios without it keep the paper's circle)
+    lean_shape: dict  # the leaning steps' safety shape for these bodies and how deep it lets the ego lean: r, r_i, eps
+    # (m), stretch, shape, psi_box (rad), lean (m); conf/mpc/courteous.yaml and its strategies read it
     predictor_moves = False  # highway-env's cars drive themselves (HighwayWorld.move)
 
     def make_world(self, seed: int) -> HighwayWorld:

@@ -151,14 +151,19 @@ def test_an_episode_renders_as_a_gif_by_highway_envs_renderer(tmp_path):
         assert gif.n_frames == 3 and gif.size == (900, 180)
 
 
-def test_the_planners_safety_ellipse_keeps_highway_bodies_apart_and_the_circle_would_not():
+@pytest.mark.parametrize("mpc", ["paper", "interactive"])
+def test_the_planners_safety_shape_keeps_highway_bodies_apart_and_the_circle_would_not(mpc):
     """Sampled pairs of 5 m x 2 m bodies (the ego's heading anywhere in mpc.psi_box, the other's along the road): every
-    overlapping pair has b_i < 0 with the highway scenario's shape; with the paper's circle some do not."""
+    overlapping pair has b_i < 0 with the highway scenario's shape (the paper's ellipse, or the leaning steps' superellipse
+    from its lean_shape); with the paper's circle some do not."""
     from core.rollout import b_i
     from data.world import overlap
 
-    sc, _, s = setup(planner_config("highway", ["gradients=cv"]))
-    assert s.stretch == pytest.approx(1.77) and setup(planner_config("two_lane", ["gradients=cv"]))[2].stretch == 1.0
+    sc, _, s = setup(planner_config("highway", ["gradients=cv", f"mpc={mpc}"]))
+    if mpc == "paper":
+        assert s.stretch == pytest.approx(1.77) and setup(planner_config("two_lane", ["gradients=cv"]))[2].stretch == 1.0
+    else:
+        assert (s.R, s.stretch, s.shape, *s.psi_box, s.strategy.lean) == pytest.approx((2.6, 2.35, 8, -0.2, 0.2, 1.4))
     rng = np.random.default_rng(0)
     n = 20000
     ego = np.column_stack([rng.uniform(-9, 9, n), rng.uniform(-4.5, 4.5, n), rng.uniform(*s.psi_box, n), np.ones(n)])
@@ -166,5 +171,22 @@ def test_the_planners_safety_ellipse_keeps_highway_bodies_apart_and_the_circle_w
     values = np.zeros((n, 2, 2))
     values[:, 0] = ego[:, :2]  # (T_p = n, SLOTS = 2, 2): one pair per "step"
     assert hits.sum() > 1000
-    assert (b_i(values, s.R, s.stretch)[0][hits] < 0).all()
+    assert (b_i(values, s.R, s.stretch, s.shape)[0][hits] < 0).all()
     assert (b_i(values, s.R)[0][hits] >= 0).any()
+
+
+def test_the_leaning_steps_take_the_scenarios_shape_and_lean_and_it_lets_the_ego_lean_beside_a_car():
+    """mpc=courteous and mpc=interactive read the highway scenario's lean_shape (it used to refuse the step: our 3.6 m x
+    1.6 m shape does not cover its bodies); the lean it declares leaves b_i >= 0 beside a car on the next lane's centre,
+    one 0.1 m deeper does not; the dense scenario keeps its own shape and 1.9 m lean."""
+    from core.rollout import b_i
+
+    for mpc in ("courteous", "interactive"):
+        sc, _, s = setup(planner_config("highway", ["gradients=cv", f"mpc={mpc}"]))
+        lean = s.strategy.lean if mpc == "interactive" else s.strategy.starts[0][0]
+        assert lean == 1.4 and (mpc == "courteous" or tuple(s.strategy.chase_lean) == (1.4,))
+        beside = lambda d: b_i(np.array([[[0.0, d], [0.0, sc.road.lane_width]]]), s.R, s.stretch, s.shape)[0, 0]
+        assert beside(lean) == pytest.approx(0.0, abs=1e-9) and beside(lean + 0.1) < 0
+    s = setup(planner_config("dense", ["gradients=cv", "mpc=interactive"]))[2]
+    assert (s.R, s.stretch, s.shape, *s.psi_box, s.strategy.lean, *s.strategy.chase_lean) == pytest.approx(
+        (2.1, 2.4, 6, -0.25, 0.25, 1.9, 1.9))
