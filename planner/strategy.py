@@ -234,13 +234,21 @@ class Chase:
     before the lane's end braking as hard as a_box allows; within `align` m of the middle it leans to lean_y (m) to ask
     for room; once the predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target
     lane, and there follows the nearest car ahead by IDM. A gap with no seen car ahead (behind) ends at the nearest
-    place an unseen car may be (`unseen`). The predictor's rollout calls it once a step (Source.react)."""
+    place an unseen car may be (`unseen`). A candidate with a finite `dv` (m/s) accepts a gap instead of chasing one:
+    leaning, it holds the speed of the target-lane cars near it plus dv (never below 0: a large negative dv waits at a
+    standstill while the stream passes) and steers in once the gap beside it, between the nearest cars ahead and behind
+    as predicted, leaves its clearance ahead and either its clearance behind or a car behind predicted to have stopped
+    for it (below V_STOPPED). The predictor's rollout calls it once a step (Source.react)."""
+
+    V_STOPPED = 0.5  # m/s: a car behind this slow has stopped for the ego (the ceiling's gap acceptance)
+    NEAR = 15.0  # m: the target-lane cars whose mean speed an accepting candidate holds (the ceiling's)
 
     FOLLOW = IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0)  # the ego's own car-following once in the target lane
 
     def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, tau: float,
-                 tau_x: float, align: float, unseen):
+                 tau_x: float, align: float, unseen, dv=None):
         self.s, self.gaps, self.lean_y, self.clearance = s, np.asarray(gaps), np.asarray(lean_y), np.asarray(clearance)
+        self.dv = np.full(len(self.gaps), np.nan) if dv is None else np.asarray(dv, float)
         self.lane_y, self.lane_end, self.tau, self.tau_x, self.align = lane_y, lane_end, tau, tau_x, align
         self.unseen = unseen
         self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
@@ -252,7 +260,16 @@ class Chase:
         x = window[:, -1, :, 0]
         v = (x - window[:, -2, :, 0]) / s.params.dt  # (K, SLOTS)
         rows = np.arange(K)
-        front, back = self.gaps[:, 0], self.gaps[:, 1]
+        front, back = self.gaps[:, 0].copy(), self.gaps[:, 1].copy()
+        accept = np.flatnonzero(np.isfinite(self.dv))
+        v_near = np.empty(K)
+        for b in accept:  # the gap beside it now: the nearest predicted cars ahead and behind (0: none seen)
+            xb, vb, target = seen_target_lane(s, window[b])
+            ahead_b, behind_b = target[xb[target] > xb[0]], target[xb[target] <= xb[0]]
+            front[b] = ahead_b[np.argmin(xb[ahead_b])] if len(ahead_b) else 0
+            back[b] = behind_b[np.argmax(xb[behind_b])] if len(behind_b) else 0
+            near = target[np.abs(xb[target] - xb[0]) < self.NEAR]
+            v_near[b] = vb[near].mean() if len(near) else self.unseen[2]
         ahead, behind, v_unseen = self.unseen
         x_front = np.where(front > 0, x[rows, front], ahead + v_unseen * k * s.params.dt)
         x_back = np.where(back > 0, x[rows, back], behind + v_unseen * k * s.params.dt)
@@ -263,9 +280,18 @@ class Chase:
         room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
         x_next = z[:, 0] + z[:, 3] * s.params.dt  # a step on: it brakes before it has passed the point
         stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - x_next))
-        a = np.minimum((v_gap + (middle - z[:, 0]) / self.tau_x - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
-        y_t = np.where(room >= self.clearance, s.y_ref,
-                       np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
+        v_aim = v_gap + (middle - z[:, 0]) / self.tau_x
+        v_aim[accept] = np.maximum(0.0, v_near[accept] + self.dv[accept])
+        a = np.minimum((v_aim - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
+        enter = room >= self.clearance
+        room_front = x_front - z[:, 0] - s.road.car_length
+        stopped = (back > 0) & (v[rows, back] <= self.V_STOPPED)
+        enter[accept] = (room_front[accept] >= self.clearance[accept]) & (enter[accept] | stopped[accept])
+        y_t = np.where(enter, s.y_ref, np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
+        y_t[accept] = np.where(enter[accept], s.y_ref, self.lean_y[accept])
+        for b in accept[enter[accept]]:  # turning in, from a standstill too: it follows the gap's front car
+            a[b] = min(self.FOLLOW.acceleration(z[b, 3], room_front[b], v_unseen if front[b] == 0 else v[b, front[b]]),
+                       (stop[b] - z[b, 3]) / s.params.dt)
         for b in np.flatnonzero(np.abs(z[:, 1] - s.y_ref) < s.road.lane_width / 4):  # in: follow the car ahead
             xb, vb, target = seen_target_lane(s, window[b])
             ahead = target[xb[target] > xb[0]]
@@ -336,6 +362,7 @@ class Interactive:
     stream_dv: tuple = rule(ListOf(Real(), at_least=1))  # m/s: the speeds relative to the stream's mean a candidate may hold
     chase_lean: tuple = rule(ListOf(Real(0)))  # m: how far a gap-chasing candidate leans to ask for room; []: no such candidates
     clearance: tuple = rule(ListOf(Real(0), at_least=1))  # m: predicted bumper clearance to both gap cars at which a chasing candidate enters
+    accept_dv: tuple = rule(ListOf(Real()))  # m/s: for each, closed-loop candidates that lean at the nearby stream's speed plus it and accept the gap beside them; []: none
     align: float = rule(Real(0))  # m: a chasing candidate leans only this close to its gap's middle
     lane_end: float = rule(Real())  # m: where the ego's lane ends (the scenario's x_ref): a chasing candidate can always stop before it
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
@@ -379,14 +406,17 @@ class Interactive:
         (Chase), each driven against the predictor's rollout in one batched recursion."""
         H, lane_y = max(self.chase_horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
         lean_y = [lane_y + np.sign(s.y_ref - lane_y) * d for d in self.chase_lean]
-        combos = [(g, y, c) for g in gaps(s, obs.history) for y in lean_y for c in self.clearance]
+        combos = [(f"chase gap {g}", f, b, y, c, np.nan) for g, f, b in gaps(s, obs.history) for y in lean_y
+                  for c in self.clearance]
+        combos += [(f"accept the gap beside at the stream {dv:+.1f} m/s", 0, 0, y, c, dv) for dv in self.accept_dv
+                   for y in lean_y for c in self.clearance]
         if not combos or s.road.lane_of(obs.z0[1]) == s.road.lane_of(s.y_ref):
             return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), [], np.empty((0, H, *np.shape(obs.history)[1:]))
-        policy = Chase(s, obs.z0, [(f, b) for (_, f, b), _, _ in combos], [y for _, y, _ in combos],
-                       [c for _, _, c in combos], lane_y, self.lane_end, self.tau, self.tau_x, self.align,
-                       unseen(s, obs.history))
+        _, front, back, lean, clear, dv = zip(*combos)
+        policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, self.tau, self.tau_x,
+                       self.align, unseen(s, obs.history), dv)
         values = source.react(obs.history, policy, H, len(combos))
-        names = [f"chase gap {g}, lean to {y:.2f} m, enter at {c} m" for (g, _, _), y, c in combos]
+        names = [f"{what}, lean to {y:.2f} m, enter at {c} m" for what, _, _, y, c, _ in combos]
         Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
         aims = [(z[4 * s.T_p - 3], z[4 * s.T_p - 1]) for z in Z]  # where it is, how fast, at T_p
         return names, Delta, alpha, Z, aims, values

@@ -6,7 +6,7 @@ import pytest
 from planner import mpc, step
 from planner.gradients import Source
 from planner.setup import make
-from planner.strategy import Interactive, Judged, gaps, paces, track, unseen
+from planner.strategy import Chase, Interactive, Judged, gaps, paces, track, unseen
 
 DT = 0.2
 
@@ -170,3 +170,33 @@ def test_a_bad_interactive_value_is_one_line(override, message):
 
 def test_interactive_is_its_own_strategy_beside_rules():
     assert isinstance(make("dense", ["gradients=cv", "mpc=interactive"])[2].strategy, Interactive)
+
+
+def accepting(back_x, back_v, dv=-10.0, clearance=0.5):
+    """One accepting candidate (Chase with a finite dv), the ego standing leaned in at (0, 1.9) beside a target-lane car
+    8 m ahead at 5 m/s and one at back_x m moving at back_v m/s, asked for its first step: (policy, steering rad)."""
+    s = world(6.0, 3.0, lane_end=200.0)[0]
+    policy = Chase(s, [0.0, 1.9, 0.0, 0.0], [(0, 0)], [1.9], [clearance], 0.0, 200.0, 1.0, 2.0, 3.0,
+                   (60.0, -60.0, 5.0), [dv])
+    k = np.arange(-7, 1) * DT
+    cars = [np.stack([0.0 * k, np.full(8, 1.9)], 1), np.stack([8.0 + 5.0 * k, np.full(8, 4.0)], 1),
+            np.stack([back_x + back_v * k, np.full(8, 4.0)], 1)]
+    policy(np.stack(cars, 1)[None], 0)
+    return s, policy, float(policy.Delta[-1][0])
+
+
+def test_an_accepting_candidate_steers_in_once_the_car_behind_has_stopped_for_it_or_left_room():
+    s = world(6.0, 3.0)[0]
+    L = s.road.car_length
+    _, _, held = accepting(-(L + 0.3), 5.0)  # 0.3 m behind it and still moving: it keeps leaning
+    _, _, stopped = accepting(-(L + 0.3), 0.0)  # the same car stopped for it: it steers in
+    _, _, room = accepting(-(L + 0.6), 5.0)  # moving, but 0.6 m behind: the clearance of 0.5 m it asks for
+    assert held == pytest.approx(0.0, abs=1e-3) and stopped > 0.05 and room > 0.05
+    _, _, tight = accepting(-(L + 0.6), 5.0, clearance=1.0)  # asking for 1 m: not yet
+    assert tight == pytest.approx(0.0, abs=1e-3)
+
+
+@pytest.mark.parametrize("dv,v", [(-10.0, 0.0), (-3.0, 2.0), (0.0, 5.0)])
+def test_an_accepting_candidate_holds_the_nearby_stream_s_speed_plus_dv_never_below_a_standstill(dv, v):
+    _, policy, _ = accepting(-(3.6 + 0.3), 5.0, dv=dv)  # the stream near it drives at 5 m/s; the ego stands still
+    assert policy.alpha[-1][0] == pytest.approx(min(v - 0.0, 3.0))  # tau = 1 s, within a_box
