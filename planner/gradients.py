@@ -186,16 +186,26 @@ class WorldModel:
         if self.world is None:
             raise UserError("predictor=oracle reads the running world: only the planner's closed loop with "
                             "world=reactive can use it")
-        worlds, dt = [self.world.copy() for _ in range(B)], self.world.params.dt
+        dt = self.world.params.dt
         window = np.repeat(np.asarray(history, dtype=float)[None], B, 0)
         out = np.empty((B, T, len(self.ids), 2))
+        groups = [(self.world.copy(), list(range(B)))]  # one world per ego path driven so far: plans that share a prefix share its steps
         for k in range(T):
-            for b, (w, xy) in enumerate(zip(worlds, ego_next(window, k))):
-                z0 = w.states()[0]
-                d = xy - z0[:2]
+            xy = ego_next(window, k)
+            split = []
+            for w, members in groups:
+                paths = {}
+                for b in members:
+                    paths.setdefault(xy[b].tobytes(), []).append(b)
+                parts = list(paths.values())
+                split += [(w.copy(), part) for part in parts[:-1]] + [(w, parts[-1])]  # copied before w steps on
+            for w, members in split:
+                z0, p = w.states()[0], xy[members[0]]
+                d = p - z0[:2]
                 psi = np.arctan2(d[1], d[0]) if np.hypot(*d) > 1e-9 else z0[2]
-                w.step_to(np.array([xy[0], xy[1], psi, np.hypot(*d) / dt]))
-                out[b, k] = w.states()[self.ids, :2]
+                w.step_to(np.array([p[0], p[1], psi, np.hypot(*d) / dt]))
+                out[members, k] = w.states()[self.ids, :2]
+            groups = split
             window = np.concatenate([window[:, 1:], out[:, k, None]], axis=1)
         return out
 
