@@ -200,3 +200,26 @@ def test_an_accepting_candidate_steers_in_once_the_car_behind_has_stopped_for_it
 def test_an_accepting_candidate_holds_the_nearby_stream_s_speed_plus_dv_never_below_a_standstill(dv, v):
     _, policy, _ = accepting(-(3.6 + 0.3), 5.0, dv=dv)  # the stream near it drives at 5 m/s; the ego stands still
     assert policy.alpha[-1][0] == pytest.approx(min(v - 0.0, 3.0))  # tau = 1 s, within a_box
+
+
+def test_the_oracle_steps_plans_that_share_a_prefix_once_and_predicts_each_as_its_own_world_copy():
+    from data import perception
+    from planner.gradients import WorldModel
+    scenario = make("dense", ["gradients=cv"])[0]
+    world = scenario.make_world(3)
+    for _ in range(8):
+        world.step(np.array([0.0, 0.0]))
+    z, seen, T = world.states(), perception.observe(world, 4, 8), 10
+    ego = z[0, :2] + np.arange(1, T + 1)[:, None] * np.array([z[0, 3] * DT, 0.0])  # straight on at its speed
+    plans = np.stack([ego, ego + np.where(np.arange(T) >= 4, 0.3, 0.0)[:, None] * [0, 1], ego * [1, 0] + [0, 1.5]])
+    plans[1, 7:, 0] -= 0.5  # plans 0 and 1 share 4 steps; plan 2 none
+    oracle = WorldModel()
+    oracle.world, oracle.ids = world, seen.ids
+    pred = oracle.react(seen.history, lambda window, k: plans[:, k], T, 3)
+    for plan, p in zip(plans, pred):  # each plan on its own copy, step by step
+        w, xy0 = world.copy(), z[0, :2]
+        for k, xy in enumerate(plan):
+            d = xy - (xy0 if k == 0 else plan[k - 1])
+            w.step_to(np.array([*xy, np.arctan2(d[1], d[0]), np.hypot(*d) / DT]))
+            assert np.array_equal(w.states()[seen.ids, :2], p[k])
+    assert np.array_equal(world.states(), z)
