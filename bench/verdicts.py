@@ -35,7 +35,7 @@ from omegaconf import ListConfig
 
 from bench.branches import heldout_seeds
 from core import stats, validate
-from core.jobs import UserError, atomic_file, guarded, job_config, writable
+from core.jobs import UserError, atomic_file, guarded, job_config, mlflow_run, writable
 from data.perception import observe
 from planner import mpc, setup
 from planner.gradients import available
@@ -112,10 +112,11 @@ def visited(cfg, driver, seed: int):
         u_prev = u
 
 
-def run(cfg) -> dict:
-    """{source: scores} over the states visited on cfg.worlds held-out worlds; writes <out_dir>/verdicts.csv."""
+def run(cfg, judges=None) -> dict:
+    """{source: scores} over the states visited on cfg.worlds held-out worlds by `judges` (default sources(cfg));
+    writes <out_dir>/verdicts.csv."""
     path = writable(Path(cfg.out_dir), "out_dir") / "verdicts.csv"
-    judges = sources(cfg)
+    judges = judges or sources(cfg)
     pc = setup.planner_config(cfg.scenario.name, [f"gradients={cfg.drive}", "mpc=interactive", "method=admm",
                                                   f"models_dir={cfg.models_dir}", *cfg.planner])
     driver = (pc, *setup.setup(pc))  # built once: the closed loop of every world
@@ -174,10 +175,17 @@ def write(path: Path, table: dict) -> None:
 
 @guarded
 def main(overrides=()) -> dict:
-    """Score, write <out_dir>/verdicts.csv, print the table; returns it."""
+    """Score, write <out_dir>/verdicts.csv, print the table, log both to MLflow (experiment verdicts: each score as
+    <source>.<score>); returns it."""
+    import mlflow
+
     cfg = job_config("verdicts", overrides)
     validate.check(cfg, SCHEMA)
-    table = run(cfg)
+    judges = sources(cfg)  # a bad source or variant fails before the MLflow run opens
+    with mlflow_run("verdicts", cfg):
+        table = run(cfg, judges)
+        mlflow.log_metrics({f"{name}.{k}": v for name, r in table.items() for k, v in r.items() if np.isfinite(v)})
+        mlflow.log_artifact(str(Path(cfg.out_dir) / "verdicts.csv"))
     pct = lambda r, k: f"{100 * r[k]:.1f} [{100 * r[k + '_lo']:.1f}, {100 * r[k + '_hi']:.1f}]"
     print(f"{table['oracle']['states']} states that mpc=interactive with {cfg.drive} visits on {cfg.worlds} held-out "
           f"{cfg.scenario.name} worlds (seeds from {cfg.seed_offset}), every {cfg.every}th step; "

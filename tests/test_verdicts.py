@@ -36,7 +36,9 @@ def test_good_kept_is_one_minus_the_refusals_with_the_mirrored_interval():
     assert out["good_kept_lo"] < out["good_kept"] < out["good_kept_hi"]
 
 
-def test_the_world_agrees_with_itself_and_a_bad_value_is_one_line(tmp_path, capsys):
+def test_the_world_agrees_with_itself_and_a_bad_value_is_one_line(tmp_path, capsys, store):
+    import mlflow
+
     table = verdicts.main(["worlds=1", "every=20", "sources=[cv]", "resamples=10", f"out_dir={tmp_path}",
                            "planner=['mpc.strategy.horizon=8','mpc.strategy.merge_steps=[0,4]']",  # small, for speed
                            f"variants=[{{name: cv_again, gradients: cv, models_dir: {tmp_path / 'none'}}}]"])
@@ -45,6 +47,9 @@ def test_the_world_agrees_with_itself_and_a_bad_value_is_one_line(tmp_path, caps
     assert table["oracle"]["miss"] in (0.0,) or np.isnan(table["oracle"]["miss"])
     assert table["oracle"]["false_alarm"] in (0.0,) or np.isnan(table["oracle"]["false_alarm"])
     assert table["oracle"]["brake_fa"] == 0.0
+    run = mlflow.search_runs(experiment_names=["verdicts"]).iloc[0]  # the scores in MLflow, the table's own
+    assert run["metrics.cv.states"] == table["cv"]["states"] and run["metrics.oracle.brake_fa"] == 0.0
+    capsys.readouterr()
     with pytest.raises(SystemExit):
         verdicts.main(["worlds=0"])
     assert capsys.readouterr().err.strip() == "error: worlds=0: must be an integer >= 1"
