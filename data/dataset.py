@@ -148,14 +148,25 @@ def episode(scenario, policy_ranges, branch_cfg, seed, steps, t_obs, n_slots):
 def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: int, steps: int, t_obs: int, n_slots: int,
           seed: int, split_fractions=(0.8, 0.1, 0.1), n_jobs: int = 1):
     """Roll `episodes` seeded episodes (and their branches) out and split their windows train/val/test by episode."""
-    order = np.random.default_rng(seed).permutation(episodes)
-    n_train = int(round(split_fractions[0] * episodes))
-    n_val = int(round(split_fractions[1] * episodes))
-    which = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+    which = assign(episodes, split_fractions, seed)
     if min(len(e) for e in which.values()) == 0:
         raise UserError(f"dataset.episodes={episodes} leaves a split empty with dataset.split={list(split_fractions)}")
     results = Parallel(n_jobs=n_jobs)(
         delayed(episode)(scenario, policy_ranges, branch_cfg, s, steps, t_obs, n_slots) for s in episode_seeds(seed, episodes))
+    return stack(results, which), [r[6] for r in results]
+
+
+def assign(episodes: int, split_fractions, seed: int) -> dict:
+    """{split: the episode indices it holds}: a seeded permutation of range(episodes) cut by split_fractions."""
+    order = np.random.default_rng(seed).permutation(episodes)
+    n_train = int(round(split_fractions[0] * episodes))
+    n_val = int(round(split_fractions[1] * episodes))
+    return {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+
+
+def stack(results: list, which: dict) -> dict:
+    """{split: arrays} of per-episode windows (X, Y, last observed step, yielding, ids, branch, ...: `episode`'s
+    results), each split holding the episodes `which` gives it (numbered by their place in `results`)."""
     splits = {}
     for name, eps in which.items():
         eps = np.sort(eps)
@@ -169,7 +180,7 @@ def build(scenario: Scenario, policy_ranges: dict, branch_cfg: dict, episodes: i
             "ids": np.concatenate([p[4] for p in parts]).astype(np.int32),
             "branch": np.concatenate([p[5] for p in parts]).astype(np.int32),
         }
-    return splits, [r[6] for r in results]
+    return splits
 
 
 def summarize(stats: list) -> dict:

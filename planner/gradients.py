@@ -179,10 +179,11 @@ class WorldModel:
     world = None  # the closed loop's world at the current step
     ids = None  # the world ids of the observation's slots (data.perception), ego first
 
-    def react(self, history, ego_next, T, B):
+    def react(self, history, ego_next, T, B, yielding=None):
         """Every car's xy (B, T, SLOTS, 2) (m) over T steps in B copies of the running world while B feedback policies
         drive the ego: ego_next(window (B, T_obs, SLOTS, 2), tau) -> its xy (B, 2) at step tau + 1, with the heading and
-        speed of each step's displacement; history (T_obs, SLOTS, 2) the observed window."""
+        speed of each step's displacement; history (T_obs, SLOTS, 2) the observed window; a bool array `yielding`
+        (B, T, SLOTS) is filled with the drivers' hidden yielding flags (bench.candidates' dataset labels)."""
         if self.world is None:
             raise UserError("predictor=oracle reads the running world: only the planner's closed loop with "
                             "world=reactive can use it")
@@ -205,6 +206,8 @@ class WorldModel:
                 psi = np.arctan2(d[1], d[0]) if np.hypot(*d) > 1e-9 else z0[2]
                 w.step_to(np.array([p[0], p[1], psi, np.hypot(*d) / dt]))
                 out[members, k] = w.states()[self.ids, :2]
+                if yielding is not None:
+                    yielding[members, k] = w.yielding[self.ids]
             groups = split
             window = np.concatenate([window[:, 1:], out[:, k, None]], axis=1)
         return out
