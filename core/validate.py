@@ -305,7 +305,7 @@ TRAINER = {
 DISTILL = {
     **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1, nullable=True),
     "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "models_dir": Text(), "run_dir": Text(),
-    "ckpt_path": Text(nullable=True), "dataset.name": Name(),
+    "ckpt_path": Text(nullable=True), "init_from": Text(nullable=True), "dataset.name": Name(),
     "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,
     "model.teacher": OneOf(("teacher",), optional=True),
     **{f"model.task.{k}": Real(0, optional=True) for k in ("jac_weight", "ego_jac_weight", "spectral_weight", "rollout_weight", "contrast_weight",

@@ -57,6 +57,8 @@ def fit(cfg: DictConfig, run_id, teacher):
     labels = {} if teacher is None else {"teacher": teacher}  # the student's data is relabelled by its teacher
     data = instantiate(cfg.model.data, dataset_dir=cfg.dataset_dir, **labels, _convert_="all")
     task = instantiate(cfg.model.task, _convert_="all")
+    if cfg.init_from is not None:
+        task.net.load_state_dict(initial_net(cfg).state_dict())
     logger = MLFlowLogger(experiment_name="distill", tracking_uri=tracking_uri(), run_id=run_id) if run_id else False
     fitter = make_trainer(cfg.trainer, logger=logger)
     fitter.fit(task, datamodule=data, ckpt_path=cfg.ckpt_path)
@@ -130,6 +132,23 @@ BRANCH_TERMS = {"teacher": ("contrast_groups", ("contrast_weight",)),
                 "student": ("rollout_groups", ("rollout_weight", "contrast_weight"))}
 
 
+def initial_net(cfg: DictConfig) -> torch.nn.Module:
+    """The network of checkpoint cfg.init_from, checked to be cfg.model's and to fit model.net; one UserError naming
+    init_from otherwise."""
+    path = Path(cfg.init_from)
+    if cfg.ckpt_path is not None:
+        raise UserError(f"init_from={path} and ckpt_path={cfg.ckpt_path}: choose one (start a new run from the weights, or "
+                        "resume the old run)")
+    if not path.is_file():
+        raise UserError(f"init_from={path}: no such checkpoint file")
+    net = models.read_checkpoint(path, cfg.model.name)
+    try:
+        instantiate(cfg.model.net).load_state_dict(net.state_dict())
+    except RuntimeError as e:
+        raise UserError(f"init_from={path}: its network does not fit model.net ({str(e).splitlines()[1].strip()})") from None
+    return net
+
+
 def check_inputs(cfg: DictConfig):
     """Every input checked before any work: the config, the splits the job reads (checksums), the resumed checkpoint and
     the student's teacher; returns the teacher (None for model=teacher)."""
@@ -145,6 +164,8 @@ def check_inputs(cfg: DictConfig):
         if not Path(cfg.ckpt_path).is_file():
             raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
         models.read_checkpoint(Path(cfg.ckpt_path), cfg.model.name)
+    if cfg.init_from is not None:
+        initial_net(cfg)
     teacher = None
     if cfg.model.name == "student":
         scenario_configs(cfg.model.certificate.scenarios)  # an unknown name fails here, not after training
