@@ -4,15 +4,15 @@ surrogate's and the teacher's solves are; cv and the student solve in one compil
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
 (cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
 (`<source>-ref`: mpc.admm.core=reference, numpy and OSQP), at a longer horizon (`<source>-T16`) and with the multi-start
-step (`<source>-courteous`: mpc=courteous); each row also per scenario family of the states (two_lane, three_lane, held-out
+steps (`<source>-courteous`, `<source>-interactive`: mpc=courteous, mpc=interactive); each row also per scenario family of the states (two_lane, three_lane, held-out
 dense worlds); then a profile of where a step's time goes (the one-call ADMM solve, other compiled kernels, DAQP solves,
-Python), the paper step's of step_time.profile and the multi-start step's of step_time.courteous, each also split in
+Python), the paper step's of step_time.profile and the multi-start steps' of step_time.courteous and .interactive, each also split in
 three (compiled solve, predictor calls, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
 Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair (the -ref,
--courteous and -T16 rows are timed after them, round-robin among themselves); repeats pass over all the states again.
+-courteous, -interactive and -T16 rows are timed after them, round-robin among themselves); repeats pass over all the states again.
 The cost gap
 is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
 own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out below IPOPT's).
@@ -40,6 +40,8 @@ from planner.setup import build, make, planner_config
 
 log = logging.getLogger(__name__)
 GAP_FLOOR = 1e-3  # J below which a relative cost gap means nothing (the plan is at the references)
+MULTI = ("courteous", "interactive")  # the multi-start steps (conf/mpc/ options), each timed for the sources of
+# step_time.<option> as rows <source>-<option>, beside that source's paper step
 
 
 class Frozen(Source):
@@ -158,13 +160,14 @@ def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix
 
 
 def variants(cfg: DictConfig, srcs: dict, states) -> dict:
-    """The sources of cfg.step_time.reference with mpc.admm.core=reference (`<name>-ref`), of cfg.step_time.courteous with
-    mpc=courteous (`<name>-courteous`) and of cfg.step_time.horizon at its T_p (`<name>-T<T_p>`, on states collected at
-    that horizon beside cfg.states.path)."""
+    """The sources of cfg.step_time.reference with mpc.admm.core=reference (`<name>-ref`), of cfg.step_time.<option>
+    with mpc=<option> for each multi-start step of MULTI (`<name>-<option>`) and of cfg.step_time.horizon at its T_p
+    (`<name>-T<T_p>`, on states collected at that horizon beside cfg.states.path)."""
     st, h = cfg.step_time, cfg.step_time.horizon
     out = steps_with(srcs, [n for n in st.reference if n in srcs], states, ("mpc.admm.core=reference",), st.repeats, "-ref")
-    out.update(steps_with(srcs, [n for n in st.courteous if n in srcs], states, ("mpc=courteous",), st.repeats,
-                          "-courteous"))
+    for option in MULTI:
+        out.update(steps_with(srcs, [n for n in st[option] if n in srcs], states, (f"mpc={option}",), st.repeats,
+                              f"-{option}"))
     names = [n for n in h.sources if n in srcs]
     if names:
         overrides, path = (f"paper.T_p={h.T_p}",), Path(cfg.states.path)
@@ -267,9 +270,10 @@ def profile_table(name: str, ms: dict, calls: dict, top: int = 8) -> str:
 
 
 def multi_start(timings: dict) -> list:
-    """[(<source>-courteous, <source>)]: each multi-start row with its source's paper step, the ratio issue 47 targets."""
-    return [(name, name.removesuffix("-courteous")) for name in timings
-            if name.endswith("-courteous") and name.removesuffix("-courteous") in timings]
+    """[(<source>-<option>, <source>)]: each multi-start row (MULTI) with its source's paper step, the ratio issue 47
+    targets."""
+    paper = lambda name: re.sub(f"-({'|'.join(MULTI)})$", "", name)
+    return [(name, paper(name)) for name in timings if paper(name) != name and paper(name) in timings]
 
 
 def summary(timings: dict, st: DictConfig) -> dict:
@@ -304,7 +308,7 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
              f"fastest of {st.repeats}",
              f"{'source':>19} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'p99 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
-        base = re.sub(r"-(ref|courteous|T\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref, ... rows
+        base = re.sub(f"-(ref|{'|'.join(MULTI)}|T\\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref, ... rows
         pred = srcs[base].predictor.name if base in srcs else "frozen"
         lines.append(f"{name:>19} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} {metrics[f'{name}_ms_p99']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")
@@ -360,9 +364,10 @@ def run(cfg: DictConfig) -> dict:
         timings.update(variants(cfg, srcs, states))
         profiles = {name: profile(solver_step(), srcs[name], settings, states) for name in cfg.step_time.profile
                     if name in srcs}
-        courteous = lambda scenario: settings(scenario, ("mpc=courteous",))  # the multi-start step: where its time goes
-        profiles.update({f"{name}-courteous": profile(solver_step(), srcs[name], courteous, states)
-                         for name in cfg.step_time.courteous if name in srcs})
+        for option in MULTI:  # the multi-start steps: where their time goes
+            s_of = lambda scenario, o=option: settings(scenario, (f"mpc={o}",))
+            profiles.update({f"{name}-{option}": profile(solver_step(), srcs[name], s_of, states)
+                             for name in cfg.step_time[option] if name in srcs})
     metrics = {**summary(timings, cfg.step_time), **first}
     log.info("\n%s", table(timings, srcs, metrics, states, cfg.step_time))
     for name, (ms, calls) in profiles.items():

@@ -387,6 +387,7 @@ BENCH = {
     "models_dir": Text(), "threads": Int(1), "states.path": Text(), "states.per_scenario": Int(1),
     "states.gradients": GRADIENT_OPTIONS, "states.seed": SEED, "states.dense_seed": SEED, "states.dense_worlds": Int(1),
     "step_time.repeats": Int(1), "step_time.courteous": ListOf(GRADIENT_OPTIONS),
+    "step_time.interactive": ListOf(GRADIENT_OPTIONS),
     "step_time.profile": ListOf(GRADIENT_OPTIONS), "zstep_compare.per_scenario": Int(0),
     "step_time.horizon.T_p": Int(1), "step_time.horizon.sources": ListOf(GRADIENT_OPTIONS),
     "step_time.reference": ListOf(GRADIENT_OPTIONS),

@@ -1,6 +1,7 @@
 """The step-time bench's planning states and report: every scenario family has its states (dense from several held-out
 worlds), a states file collected otherwise is collected again, medians per family are each family's own, the profile's
-three-way split adds up to its parts, and a repeat meets every other state before the same one again."""
+three-way split adds up to its parts, each multi-start row is set against its own source's paper step, and a repeat meets
+every other state before the same one again."""
 from types import SimpleNamespace
 
 import numpy as np
@@ -44,6 +45,22 @@ def test_medians_per_family_are_each_familys_own():
     out = step_time.summary({"cv": (ms, 5.0, 0, np.zeros(5), families)}, st)
     assert out["cv_ms_median"] == 3.0 and out["cv_ms_median_two_lane"] == 2.0 and out["cv_ms_median_dense"] == 20.0
     assert out["cv_ms_p95_dense"] == np.percentile([10.0, 30.0], 95) and out["cv_ms_p99"] == np.percentile(ms, 99)
+
+
+def test_each_multi_start_row_is_set_against_its_sources_paper_step():
+    row = lambda ms: (np.full(4, ms), 5.0, 0, np.zeros(4), np.array(["dense"] * 4))
+    timings = {"cv": row(2.0), "student": row(3.0), "cv-courteous": row(5.0), "student-interactive": row(12.0),
+               "cv-interactive": row(7.0), "surrogate-courteous": row(9.0), "student-ref": row(4.0)}
+    assert step_time.multi_start(timings) == [("cv-courteous", "cv"), ("student-interactive", "student"),
+                                              ("cv-interactive", "cv")]  # surrogate's paper step was not timed
+    st = OmegaConf.create({"ratios": [], "ipopt": [], "repeats": 1})
+    out = step_time.summary(timings, st)
+    assert out["ratio_student-interactive_student"] == 4.0 and out["ratio_cv-interactive_cv"] == 3.5
+    srcs = {"cv": SimpleNamespace(predictor=SimpleNamespace(name="cv")),
+            "student": SimpleNamespace(predictor=SimpleNamespace(name="student"))}
+    shown = step_time.table(timings, srcs, out, [SimpleNamespace(scenario="dense")], st).splitlines()
+    assert next(line for line in shown if "student-interactive " in line).split()[1] == "student"
+    assert "student-interactive/student: 4.0x" in shown
 
 
 def test_the_split_sorts_every_part_into_one_of_three():
