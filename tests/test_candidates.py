@@ -57,7 +57,7 @@ def test_a_candidates_windows_are_the_worlds_answer_to_its_plan(tmp_path, capsys
 
 @pytest.mark.parametrize("override, message", [
     ("every=0", "every=0: must be an integer >= 1"),
-    ("seed_offset=23000000", "seed_offset=23000000, worlds=40: seeds 23000000-23000039 overlap reserved[0]=[11000000, "
+    ("seed_offset=23000000", "seed_offset=23000000, worlds=40: seeds 23000000-23000039 overlap reserved[0]=[1000000, "
                              "24999999] (seeds kept for evaluation); choose another seed_offset"),
     ("worlds=2", "worlds=2 leaves a split empty with dataset.split=[0.8, 0.1, 0.1]"),
     ("wolrds=3", None),
