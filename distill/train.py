@@ -52,13 +52,14 @@ def make_trainer(cfg_trainer: DictConfig, **kwargs) -> L.Trainer:
     return instantiate(spec, callbacks=callbacks, **kwargs)
 
 
-def fit(cfg: DictConfig, run_id, teacher):
-    """Lightning fit of cfg.model's task; returns the trainer (its best checkpoint holds the chosen weights)."""
+def fit(cfg: DictConfig, run_id, teacher, start=None):
+    """Lightning fit of cfg.model's task, its network first set to `start`'s weights where given (init_from); returns the
+    trainer (its best checkpoint holds the chosen weights)."""
     labels = {} if teacher is None else {"teacher": teacher}  # the student's data is relabelled by its teacher
     data = instantiate(cfg.model.data, dataset_dir=cfg.dataset_dir, **labels, _convert_="all")
     task = instantiate(cfg.model.task, _convert_="all")
-    if cfg.init_from is not None:
-        task.net.load_state_dict(initial_net(cfg).state_dict())
+    if start is not None:
+        task.net.load_state_dict(start.state_dict())
     logger = MLFlowLogger(experiment_name="distill", tracking_uri=tracking_uri(), run_id=run_id) if run_id else False
     fitter = make_trainer(cfg.trainer, logger=logger)
     fitter.fit(task, datamodule=data, ckpt_path=cfg.ckpt_path)
@@ -151,7 +152,8 @@ def initial_net(cfg: DictConfig) -> torch.nn.Module:
 
 def check_inputs(cfg: DictConfig):
     """Every input checked before any work: the config, the splits the job reads (checksums), the resumed checkpoint and
-    the student's teacher; returns the teacher (None for model=teacher)."""
+    the student's teacher, the checkpoint to start from; returns (the teacher (None for model=teacher), the network of
+    init_from (None without))."""
     validate.check(cfg, "distill")
     groups, weights = BRANCH_TERMS[cfg.model.name]
     for weight in weights:
@@ -164,27 +166,26 @@ def check_inputs(cfg: DictConfig):
         if not Path(cfg.ckpt_path).is_file():
             raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
         models.read_checkpoint(Path(cfg.ckpt_path), cfg.model.name)
-    if cfg.init_from is not None:
-        initial_net(cfg)
+    start = None if cfg.init_from is None else initial_net(cfg)
     teacher = None
     if cfg.model.name == "student":
         scenario_configs(cfg.model.certificate.scenarios)  # an unknown name fails here, not after training
         teacher = models.load(cfg.model.teacher, cfg.models_dir)
     writable(cfg.models_dir, "models_dir")  # last: a rejected command creates no folder
-    return teacher
+    return teacher, start
 
 
 def run(cfg: DictConfig):
     """Train or distil cfg.model.name, write models/<name>.{ckpt,onnx} (+ certificate.json) once everything succeeded;
     returns the metrics."""
     name = cfg.model.name
-    teacher = check_inputs(cfg)
+    teacher, start = check_inputs(cfg)
     torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // cfg.trainer.devices))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     rank0 = int(os.environ.get("LOCAL_RANK", 0)) == 0  # Lightning's DDP launcher re-runs this job in child processes
     with (mlflow_run("distill", cfg, run_name=name, model=name) if rank0 else nullcontext()) as run_:
         t0 = time.perf_counter()
-        trainer = fit(cfg, run_.info.run_id if rank0 else None, teacher)
+        trainer = fit(cfg, run_.info.run_id if rank0 else None, teacher, start)
         if trainer.global_rank != 0:
             return None
         results = {"train_s": time.perf_counter() - t0, "epochs": trainer.current_epoch}
