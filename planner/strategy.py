@@ -50,12 +50,29 @@ class Paper:
         return plans[0]
 
 
+def target_lane(s: Settings, windows):
+    """(x (..., SLOTS) m, v (..., SLOTS) m/s, in the target lane (..., SLOTS) bool, the ego's slot False) from the last
+    two steps of windows (..., T, SLOTS, 2): many predicted windows at once."""
+    x, y = windows[..., -1, :, 0], windows[..., -1, :, 1]
+    v = (x - windows[..., -2, :, 0]) / s.params.dt
+    there = s.road.lane_of(y) == s.road.lane_of(s.y_ref)
+    there[..., 0] = False
+    return x, v, there
+
+
 def seen_target_lane(s: Settings, history):
     """(x (SLOTS,) m, v (SLOTS,) m/s, the slots of the other cars in the target lane) from the last two observed steps
     of the history (T_obs, SLOTS, 2)."""
-    x, y = history[-1, :, 0], history[-1, :, 1]
-    v = (x - history[-2, :, 0]) / s.params.dt
-    return x, v, np.flatnonzero(s.road.lane_of(y[1:]) == s.road.lane_of(s.y_ref)) + 1
+    x, v, there = target_lane(s, history)
+    return x, v, np.flatnonzero(there)
+
+
+def nearest(x, cars, ahead: bool):
+    """The slot (K,) of the car among `cars` (K, SLOTS) bool nearest ahead of the ego's x (slot 0 of x (K, SLOTS) m;
+    behind: at or behind it), 0 where there is none; ties to the lowest slot."""
+    side = cars & ((x > x[:, :1]) if ahead else (x <= x[:, :1]))
+    slot = np.where(side, x, np.inf).argmin(1) if ahead else np.where(side, x, -np.inf).argmax(1)
+    return np.where(side.any(1), slot, 0)
 
 
 @dataclass(frozen=True)
@@ -256,20 +273,15 @@ class Chase:
 
     def __call__(self, window, k):
         """The egos' xy (K, 2) one step on from the last step of the predicted windows (K, T_obs, SLOTS, 2)."""
-        s, z, K = self.s, self.z, len(self.gaps)
-        x = window[:, -1, :, 0]
-        v = (x - window[:, -2, :, 0]) / s.params.dt  # (K, SLOTS)
-        rows = np.arange(K)
-        front, back = self.gaps[:, 0].copy(), self.gaps[:, 1].copy()
-        accept = np.flatnonzero(np.isfinite(self.dv))
-        v_near = np.empty(K)
-        for b in accept:  # the gap beside it now: the nearest predicted cars ahead and behind (0: none seen)
-            xb, vb, target = seen_target_lane(s, window[b])
-            ahead_b, behind_b = target[xb[target] > xb[0]], target[xb[target] <= xb[0]]
-            front[b] = ahead_b[np.argmin(xb[ahead_b])] if len(ahead_b) else 0
-            back[b] = behind_b[np.argmax(xb[behind_b])] if len(behind_b) else 0
-            near = target[np.abs(xb[target] - xb[0]) < self.NEAR]
-            v_near[b] = vb[near].mean() if len(near) else self.unseen[2]
+        s, z, rows = self.s, self.z, np.arange(len(self.gaps))
+        x, v, there = target_lane(s, window)  # (K, SLOTS)
+        lead = nearest(x, there, ahead=True)
+        accept = np.isfinite(self.dv)  # the gap beside it now: the nearest predicted cars ahead and behind (0: none seen)
+        front = np.where(accept, lead, self.gaps[:, 0])
+        back = np.where(accept, nearest(x, there, ahead=False), self.gaps[:, 1])
+        near = there & (np.abs(x - x[:, :1]) < self.NEAR)
+        n_near = near.sum(1)  # the masked sum adds the same terms in the same order as a mean over those cars alone
+        v_near = np.where(n_near > 0, np.where(near, v, 0.0).sum(1) / np.maximum(n_near, 1), self.unseen[2])
         ahead, behind, v_unseen = self.unseen
         x_front = np.where(front > 0, x[rows, front], ahead + v_unseen * k * s.params.dt)
         x_back = np.where(back > 0, x[rows, back], behind + v_unseen * k * s.params.dt)
@@ -280,24 +292,21 @@ class Chase:
         room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
         x_next = z[:, 0] + z[:, 3] * s.params.dt  # a step on: it brakes before it has passed the point
         stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - x_next))
-        v_aim = v_gap + (middle - z[:, 0]) / self.tau_x
-        v_aim[accept] = np.maximum(0.0, v_near[accept] + self.dv[accept])
+        v_aim = np.where(accept, np.maximum(0.0, v_near + self.dv), v_gap + (middle - z[:, 0]) / self.tau_x)
         a = np.minimum((v_aim - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
-        enter = room >= self.clearance
         room_front = x_front - z[:, 0] - s.road.car_length
         stopped = (back > 0) & (v[rows, back] <= self.V_STOPPED)
-        enter[accept] = (room_front[accept] >= self.clearance[accept]) & (enter[accept] | stopped[accept])
-        y_t = np.where(enter, s.y_ref, np.where(np.abs(middle - z[:, 0]) <= self.align, self.lean_y, self.lane_y))
-        y_t[accept] = np.where(enter[accept], s.y_ref, self.lean_y[accept])
-        for b in accept[enter[accept]]:  # turning in, from a standstill too: it follows the gap's front car
-            a[b] = min(self.FOLLOW.acceleration(z[b, 3], room_front[b], v_unseen if front[b] == 0 else v[b, front[b]]),
-                       (stop[b] - z[b, 3]) / s.params.dt)
+        enter = np.where(accept, (room_front >= self.clearance) & ((room >= self.clearance) | stopped),
+                         room >= self.clearance)
+        lean = np.where(accept | (np.abs(middle - z[:, 0]) <= self.align), self.lean_y, self.lane_y)
+        y_t = np.where(enter, s.y_ref, lean)
+        v_front = np.where(front > 0, v[rows, front], v_unseen)
+        for b in np.flatnonzero(accept & enter):  # turning in, from a standstill too: it follows the gap's front car
+            a[b] = min(self.FOLLOW.acceleration(z[b, 3], room_front[b], v_front[b]), (stop[b] - z[b, 3]) / s.params.dt)
+        gap_lead = x[rows, lead] - x[:, 0] - s.road.car_length
         for b in np.flatnonzero(np.abs(z[:, 1] - s.y_ref) < s.road.lane_width / 4):  # in: follow the car ahead
-            xb, vb, target = seen_target_lane(s, window[b])
-            ahead = target[xb[target] > xb[0]]
-            lead = ahead[np.argmin(xb[ahead])] if len(ahead) else None
-            a[b] = (self.FOLLOW.acceleration(z[b, 3]) if lead is None else
-                    self.FOLLOW.acceleration(z[b, 3], xb[lead] - xb[0] - s.road.car_length, vb[lead]))
+            a[b] = (self.FOLLOW.acceleration(z[b, 3]) if lead[b] == 0 else
+                    self.FOLLOW.acceleration(z[b, 3], gap_lead[b], v[b, lead[b]]))
             y_t[b] = s.y_ref
         d, a, self.z = drive(s, z, y_t, a)
         self.Delta.append(d)
