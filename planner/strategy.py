@@ -19,7 +19,7 @@ from core.rollout import accelerations, b_i
 from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
-from planner import admm
+from planner import admm, jit_chase
 from planner.mpc import Observation, Settings, costs, lane_plans, planned, simulate, start_point, warm_start
 
 NONNEG = Real(0)
@@ -65,14 +65,6 @@ def seen_target_lane(s: Settings, history):
     of the history (T_obs, SLOTS, 2)."""
     x, v, there = target_lane(s, history)
     return x, v, np.flatnonzero(there)
-
-
-def nearest(x, cars, ahead: bool):
-    """The slot (K,) of the car among `cars` (K, SLOTS) bool nearest ahead of the ego's x (slot 0 of x (K, SLOTS) m;
-    behind: at or behind it), 0 where there is none; ties to the lowest slot."""
-    side = cars & ((x > x[:, :1]) if ahead else (x <= x[:, :1]))
-    slot = np.where(side, x, np.inf).argmin(1) if ahead else np.where(side, x, -np.inf).argmax(1)
-    return np.where(side.any(1), slot, 0)
 
 
 @dataclass(frozen=True)
@@ -264,50 +256,26 @@ class Chase:
 
     def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, tau: float,
                  tau_x: float, align: float, unseen, dv=None):
-        self.s, self.gaps, self.lean_y, self.clearance = s, np.asarray(gaps), np.asarray(lean_y), np.asarray(clearance)
+        self.s, self.gaps = s, np.asarray(gaps, int).reshape(-1, 2)
+        self.lean_y, self.clearance = np.asarray(lean_y, float), np.asarray(clearance, float)
         self.dv = np.full(len(self.gaps), np.nan) if dv is None else np.asarray(dv, float)
         self.lane_y, self.lane_end, self.tau, self.tau_x, self.align = lane_y, lane_end, tau, tau_x, align
         self.unseen = unseen
         self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
         self.Delta, self.alpha, self.Z = [], [], []
+        self.constants = tuple(float(c) for c in (  # chase_step's scalars after k, as it reads them
+            *unseen, lane_y, s.y_ref, lane_end - STOP_MARGIN, -2.0 * s.a_box[0], tau, tau_x, align, s.params.dt,
+            s.road.car_length, s.road.lane_width, self.NEAR, self.V_STOPPED))
 
     def __call__(self, window, k):
         """The egos' xy (K, 2) one step on from the last step of the predicted windows (K, T_obs, SLOTS, 2)."""
-        s, z, rows = self.s, self.z, np.arange(len(self.gaps))
+        s, z = self.s, self.z
         x, v, there = target_lane(s, window)  # (K, SLOTS)
-        lead = nearest(x, there, ahead=True)
-        accept = np.isfinite(self.dv)  # the gap beside it now: the nearest predicted cars ahead and behind (0: none seen)
-        front = np.where(accept, lead, self.gaps[:, 0])
-        back = np.where(accept, nearest(x, there, ahead=False), self.gaps[:, 1])
-        near = there & (np.abs(x - x[:, :1]) < self.NEAR)
-        n_near = near.sum(1)  # the masked sum adds the same terms in the same order as a mean over those cars alone
-        v_near = np.where(n_near > 0, np.where(near, v, 0.0).sum(1) / np.maximum(n_near, 1), self.unseen[2])
-        ahead, behind, v_unseen = self.unseen
-        x_front = np.where(front > 0, x[rows, front], ahead + v_unseen * k * s.params.dt)
-        x_back = np.where(back > 0, x[rows, back], behind + v_unseen * k * s.params.dt)
-        known = np.stack([front > 0, back > 0], 1)
-        v_pair = np.stack([v[rows, front], v[rows, back]], 1)
-        v_gap = np.where(known.any(1), (v_pair * known).sum(1) / np.maximum(known.sum(1), 1), z[:, 3])
-        middle = 0.5 * (x_front + x_back)
-        room = np.minimum(x_front - z[:, 0], z[:, 0] - x_back) - s.road.car_length
-        x_next = z[:, 0] + z[:, 3] * s.params.dt  # a step on: it brakes before it has passed the point
-        stop = np.sqrt(-2.0 * s.a_box[0] * np.maximum(0.0, self.lane_end - STOP_MARGIN - x_next))
-        v_aim = np.where(accept, np.maximum(0.0, v_near + self.dv), v_gap + (middle - z[:, 0]) / self.tau_x)
-        a = np.minimum((v_aim - z[:, 3]) / self.tau, (stop - z[:, 3]) / s.params.dt)
-        room_front = x_front - z[:, 0] - s.road.car_length
-        stopped = (back > 0) & (v[rows, back] <= self.V_STOPPED)
-        enter = np.where(accept, (room_front >= self.clearance) & ((room >= self.clearance) | stopped),
-                         room >= self.clearance)
-        lean = np.where(accept | (np.abs(middle - z[:, 0]) <= self.align), self.lean_y, self.lane_y)
-        y_t = np.where(enter, s.y_ref, lean)
-        v_front = np.where(front > 0, v[rows, front], v_unseen)
-        for b in np.flatnonzero(accept & enter):  # turning in, from a standstill too: it follows the gap's front car
-            a[b] = min(self.FOLLOW.acceleration(z[b, 3], room_front[b], v_front[b]), (stop[b] - z[b, 3]) / s.params.dt)
-        gap_lead = x[rows, lead] - x[:, 0] - s.road.car_length
-        for b in np.flatnonzero(np.abs(z[:, 1] - s.y_ref) < s.road.lane_width / 4):  # in: follow the car ahead
-            a[b] = (self.FOLLOW.acceleration(z[b, 3]) if lead[b] == 0 else
-                    self.FOLLOW.acceleration(z[b, 3], gap_lead[b], v[b, lead[b]]))
-            y_t[b] = s.y_ref
+        a, y_t, follow, gap, v_lead, cap = jit_chase.chase_step(x, v, there, z, self.gaps, self.dv, self.lean_y,
+                                                                self.clearance, k, *self.constants)
+        for b in np.flatnonzero(follow):  # few at a step: IDM by the world's own driver model
+            a[b] = min(self.FOLLOW.acceleration(z[b, 3]) if np.isnan(gap[b]) else
+                       self.FOLLOW.acceleration(z[b, 3], gap[b], v_lead[b]), cap[b])
         d, a, self.z = drive(s, z, y_t, a)
         self.Delta.append(d)
         self.alpha.append(a)
