@@ -212,11 +212,11 @@ def entering_speed(s: Settings, history) -> float:
 def drive(s: Settings, z, y_target, a):
     """Controls delta, a (K,) in rad, m/s^2 and next states (K, 4) of K egos in states z (K, 4) that steer to the lateral
     targets y_target (K,) in m, their heading held within psi_box, accelerating at a (K,) within a_box, never reversing."""
-    p = s.params
+    p, clip = s.params, lambda u, box: np.minimum(np.maximum(u, box[0]), box[1])  # np.clip's numbers, without its wrapping's microseconds
     v = np.maximum(z[:, 3], 1.0)
-    psi_d = np.clip(np.arctan(0.6 * (y_target - z[:, 1]) / v), *s.psi_box)
-    d = np.clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, *s.delta_box)
-    a = np.maximum(np.clip(a, *s.a_box), -z[:, 3] / p.dt)
+    psi_d = clip(np.arctan(0.6 * (y_target - z[:, 1]) / v), s.psi_box)
+    d = clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, s.delta_box)
+    a = np.maximum(clip(a, s.a_box), -z[:, 3] / p.dt)
     return d, a, bicycle.step(z, np.stack([d, a], -1), p)
 
 
