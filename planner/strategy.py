@@ -407,7 +407,8 @@ class Interactive:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H)."""
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
-        b = [b_i(v, s.R, s.stretch, s.shape).min(initial=np.inf) for v in values]
+        b = b_i(values.reshape(K * H, *values.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H): every step of every candidate at once
+        b = b.reshape(len(b), K, H).min(axis=(0, 2), initial=np.inf)
         history = np.broadcast_to(obs.history, (K, *np.shape(obs.history)))
         braking = np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
         in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
