@@ -69,11 +69,13 @@ class GeluStudent(nn.Module):
         return out
 
 
-def _gelu(a):
-    """Exact GELU and its derivative, float64 numpy (matches torch's default erf form)."""
+def _gelu(a, derivative=True):
+    """Exact GELU and, with `derivative`, its derivative (else None), float64 numpy (matches torch's default erf form)."""
     from scipy.special import erf
 
     cdf = 0.5 * (1.0 + erf(a / np.sqrt(2.0)))
+    if not derivative:  # a rollout's values: the derivative's exp was a sixth of a forward pass
+        return a * cdf, None
     pdf = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
     return a * cdf, cdf + a * pdf
 
@@ -90,7 +92,7 @@ def phi_jac64(weights, s, window, jac=True, cols=None):
     grad = None
     for W, bias in weights[:-1]:
         a = h @ W.T + bias
-        h, dh = _gelu(a)
+        h, dh = _gelu(a, jac)
         if jac:  # the values alone skip the chain: most of the cost
             grad = dh[:, :, None] * (W[:, cols] if grad is None else W @ grad)  # d h / d window[cols], (B, width, cols)
     W, bias = weights[-1]
