@@ -223,3 +223,26 @@ def test_the_oracle_steps_plans_that_share_a_prefix_once_and_predicts_each_as_it
             w.step_to(np.array([*xy, np.arctan2(d[1], d[0]), np.hypot(*d) / DT]))
             assert np.array_equal(w.states()[seen.ids, :2], p[k])
     assert np.array_equal(world.states(), z)
+
+
+def test_chase_drives_its_candidates_together_as_each_alone():
+    s, obs = world(6.0, 3.0, lane_end=120.0)
+    g, lean = s.strategy, 1.9
+    combos = [(f, b, c, np.nan) for _, f, b in gaps(s, obs.history) for c in g.clearance]
+    combos += [(0, 0, c, dv) for dv in g.accept_dv for c in g.clearance]
+    source, H = scripted(brake=3.0), 50
+
+    def driven(rows):
+        """Delta, alpha (K, H), Z (K, 4H) and the predicted values of the candidates `rows` of combos, driven together."""
+        front, back, clear, dv = zip(*[combos[k] for k in rows])
+        policy = Chase(s, obs.z0, list(zip(front, back)), [lean] * len(rows), clear, 0.0, g.lane_end, g.tau, g.tau_x,
+                       g.align, unseen(s, obs.history), dv)
+        values = source.react(obs.history, policy, H, len(rows))
+        return np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1), values
+
+    together = driven(range(len(combos)))
+    for k in range(len(combos)):
+        for both, alone in zip(together, driven([k])):
+            assert np.array_equal(both[k:k + 1], alone)
+    y = together[2].reshape(len(combos), H, 4)[:, -1, 1]
+    assert 0 < np.sum(np.abs(y - s.y_ref) < 0.5) < len(combos)  # some candidates entered and followed, others did not
