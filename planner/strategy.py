@@ -226,10 +226,11 @@ def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x:
     (K, H) in m is given (not NaN), the speed aimed at also closes the distance to it with time constant tau_x (s)."""
     K, H = y_target.shape
     x_target = np.full((K, H), np.nan) if x_target is None else x_target
+    speed_only = np.isnan(x_target)  # once: np.nan_to_num each step cost more than the rest of the step's maths
     z = np.repeat(np.asarray(z0, float)[None], K, 0)
     Delta, alpha, Z = [], [], []
     for k in range(H):
-        v_aim = np.maximum(0.0, v_target[:, k] + np.nan_to_num((x_target[:, k] - z[:, 0]) / tau_x))
+        v_aim = np.maximum(0.0, v_target[:, k] + np.where(speed_only[:, k], 0.0, (x_target[:, k] - z[:, 0]) / tau_x))
         d, a, z = drive(s, z, y_target[:, k], (v_aim - z[:, 3]) / tau)
         Delta.append(d)
         alpha.append(a)
