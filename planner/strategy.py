@@ -217,7 +217,7 @@ def drive(s: Settings, z, y_target, a):
     psi_d = clip(np.arctan(0.6 * (y_target - z[:, 1]) / v), s.psi_box)
     d = clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, s.delta_box)
     a = np.maximum(clip(a, s.a_box), -z[:, 3] / p.dt)
-    return d, a, bicycle.step(z, np.stack([d, a], -1), p)
+    return d, a, bicycle.step(z, np.array([d, a]).T, p)  # np.stack took 4 us more
 
 
 def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x: float = 1.0):
