@@ -260,13 +260,11 @@ class Chase:
         self.s, self.gaps = s, np.asarray(gaps, int).reshape(-1, 2)
         self.lean_y, self.clearance = np.asarray(lean_y, float), np.asarray(clearance, float)
         self.dv = np.full(len(self.gaps), np.nan) if dv is None else np.asarray(dv, float)
-        self.lane_y, self.lane_end, self.tau, self.tau_x, self.align = lane_y, lane_end, tau, tau_x, align
-        self.unseen = unseen
-        self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
-        self.Delta, self.alpha, self.Z = [], [], []
-        self.constants = tuple(float(c) for c in (  # chase_step's scalars after k, as it reads them
+        self.constants = tuple(float(c) for c in (  # jit_chase.chase_step's scalars after k, in its order
             *unseen, lane_y, s.y_ref, lane_end - STOP_MARGIN, -2.0 * s.a_box[0], tau, tau_x, align, s.params.dt,
             s.road.car_length, s.road.lane_width, self.NEAR, self.V_STOPPED))
+        self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
+        self.Delta, self.alpha, self.Z = [], [], []
 
     def __call__(self, window, k):
         """The egos' xy (K, 2) one step on from the last step of the predicted windows (K, T_obs, SLOTS, 2)."""
