@@ -24,11 +24,11 @@ def nearest(x, there, b, ahead):
 def chase_step(x, v, there, z, gaps, dv, lean_y, clearance, k, ahead, behind, v_unseen, lane_y, y_ref, stop_at, brake,
                tau, tau_x, align, dt, car_length, lane_width, near, v_stopped):
     """Chase's step for K candidates in states z (K, 4) from the predicted last step's x (K, SLOTS) m, v (K, SLOTS) m/s
-    and target-lane cars `there` (K, SLOTS) bool; per candidate its gap (front, back slot) (K, 2), dv (NaN: chases) m/s,
-    lean_y m and clearance m; step k; the unseen cars' places ahead, behind m at k = 0 and speed v_unseen m/s; stop_at (m) the point before
-    which it can always stop braking at brake = -2 a_min (m/s^2). Returns a (K,) m/s^2 and y_t (K,) m before following,
-    and who follows by IDM: follow (K,) bool, the bumper gap (K,) m to its leader (NaN: free road), the leader's v (K,)
-    m/s and the cap (K,) m/s^2 on its acceleration (inf: none)."""
+    and target-lane cars `there` (K, SLOTS) bool; per candidate its gap (front, back slot) (K, 2), dv (NaN: it chases)
+    m/s, lean_y m and clearance m; step k; where unseen cars may be ahead and behind at k = 0 (m) and their speed
+    v_unseen m/s; stop_at (m), the point before which it can always stop braking at brake = -2 a_min (m/s^2). Returns
+    a (K,) m/s^2 and y_t (K,) m before following, and who follows by IDM: follow (K,) bool, the bumper gap (K,) m to
+    its leader (NaN: free road), the leader's v (K,) m/s and the cap (K,) m/s^2 on its acceleration (inf: none)."""
     K = len(z)
     a, y_t, follow = np.empty(K), np.empty(K), np.zeros(K, np.bool_)
     gap, v_lead, cap = np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.inf)
