@@ -14,6 +14,10 @@ braking harder than mpc.b_courtesy. Per source, over every (state, candidate):
                b_courtesy (issue 44's false-alarm rate);
   fa_unsafe, fa_braking  the share of truly good merges it refuses because it predicts a car inside the safety shape
                (b_i < 0), and because it predicts braking above b_courtesy (a refusal may have both reasons);
+  fa_unsafe_merged  the share of truly good merges it refuses as unsafe only after the candidate has merged (a car of
+               the target lane predicted into the ego once it is there: how the predictor follows a cut-in through);
+  brake_detect the share of candidates that truly make a driver brake harder than the scenario's b_safe (they force)
+               where it predicts braking above b_courtesy (why a step that trusts it forces);
 and per state, the candidate it ranks first (planner.strategy.Interactive.order):
   takes_good   a good merge, on the states where the world has one;
   takes_bad    a merge that is not good.
@@ -36,6 +40,7 @@ from omegaconf import ListConfig
 from bench.branches import heldout_seeds
 from core import stats, validate
 from core.jobs import UserError, atomic_file, guarded, job_config, mlflow_run, writable
+from core.rollout import b_i
 from data.perception import observe
 from planner import mpc, setup
 from planner.gradients import available
@@ -89,13 +94,19 @@ def sources(cfg) -> dict:
 
 
 def verdicts(source, s, obs, plans) -> tuple:
-    """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order, unsafe (K,): b_i < 0) of the K
-    candidate plans as `source` judges them."""
-    judged = s.strategy.judge(s, obs, source, *plans)
-    merges = np.array([j.merge < s.strategy.never(s) for j in judged])
+    """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order, unsafe (K,): b_i < 0, unsafe only
+    once merged (K,)) of the K candidate plans (Delta, alpha, Z) as `source` judges them (Interactive.judge)."""
+    Delta, alpha, Z = plans
+    K, H = Delta.shape
+    values = source.values(obs.history, Z.reshape(K, H, 4)[:, :, :2])
+    judged = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
+    merge = np.array([j.merge for j in judged])
+    merges = merge < s.strategy.never(s)
     good = merges & [s.strategy.acceptable(s, j) for j in judged]
-    unsafe = np.array([j.b_min < 0.0 for j in judged])
-    return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged), unsafe
+    inside = np.array([(b_i(v, s.R, s.stretch, s.shape) < 0.0).any(axis=0) for v in values])  # (K, H): someone inside
+    unsafe = inside.any(axis=1)
+    merged = unsafe & (inside.argmax(axis=1) + 1 >= merge)  # steps count from 1, as Judged.merge
+    return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged), unsafe, merged
 
 
 def visited(cfg, driver, seed: int):
@@ -127,12 +138,13 @@ def run(cfg, judges=None) -> dict:
             s = judges["oracle"][1]
             plans = s.strategy.plans(s, obs, None)[1:4]
             judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
-            true_good, true_merge, true_brake, _, _ = verdicts(*judges["oracle"], obs, plans)
+            true_good, true_merge, true_brake, *_ = verdicts(*judges["oracle"], obs, plans)
             for name, (source, s_) in judges.items():
-                good, merges, brake, order, unsafe = verdicts(source, s_, obs, plans)
+                good, merges, brake, order, unsafe, merged = verdicts(source, s_, obs, plans)
                 per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,
                                         "true_merge": true_merge, "brake": brake, "true_brake": true_brake,
-                                        "first": order[0], "b_c": s_.b_courtesy, "unsafe": unsafe})
+                                        "first": order[0], "b_c": s_.b_courtesy, "b_safe": cfg.scenario.b_safe,
+                                        "unsafe": unsafe, "unsafe_merged": merged})
     table = {name: scores(rows, cfg.resamples, cfg.seed_offset) for name, rows in per_state.items()}
     write(path, table)
     return table
@@ -145,7 +157,9 @@ def scores(rows, resamples: int, seed: int) -> dict:
             "miss": [r["good"][r["true_merge"] & ~r["true_good"]] for r in rows],
             "brake_fa": [r["brake"][r["true_brake"] < FORCED] > r["b_c"] for r in rows],
             "fa_unsafe": [r["unsafe"][r["true_good"]] for r in rows],
-            "fa_braking": [r["brake"][r["true_good"]] > r["b_c"] for r in rows]}
+            "fa_braking": [r["brake"][r["true_good"]] > r["b_c"] for r in rows],
+            "fa_unsafe_merged": [r["unsafe_merged"][r["true_good"]] for r in rows],
+            "brake_detect": [r["brake"][r["true_brake"] > r["b_safe"]] > r["b_c"] for r in rows]}
     out = {"states": len(rows)}
     for k, groups in cand.items():
         out[k] = share(np.concatenate(groups).astype(float))
@@ -190,12 +204,13 @@ def main(overrides=()) -> dict:
     print(f"{table['oracle']['states']} states that mpc=interactive with {cfg.drive} visits on {cfg.worlds} held-out "
           f"{cfg.scenario.name} worlds (seeds from {cfg.seed_offset}), every {cfg.every}th step; "
           f"{table['oracle']['states_with_good']} have a good merge by the world's verdict; {cfg.out_dir}/verdicts.csv")
-    print("| source | false alarm % | of them unsafe % | for braking % | miss % | brake false alarm % "
-          "| takes a good merge % | takes a bad merge % |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| source | false alarm % | of them unsafe % | unsafe once merged % | for braking % | miss % "
+          "| brake false alarm % | forcing detected % | takes a good merge % | takes a bad merge % |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, r in table.items():
-        print(f"| {name} | {pct(r, 'false_alarm')} | {pct(r, 'fa_unsafe')} | {pct(r, 'fa_braking')} | {pct(r, 'miss')} "
-              f"| {pct(r, 'brake_fa')} | {pct(r, 'takes_good')} | {pct(r, 'takes_bad')} |")
+        print(f"| {name} | {pct(r, 'false_alarm')} | {pct(r, 'fa_unsafe')} | {pct(r, 'fa_unsafe_merged')} "
+              f"| {pct(r, 'fa_braking')} | {pct(r, 'miss')} | {pct(r, 'brake_fa')} | {pct(r, 'brake_detect')} "
+              f"| {pct(r, 'takes_good')} | {pct(r, 'takes_bad')} |")
     return table
 
 
