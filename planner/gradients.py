@@ -83,29 +83,25 @@ class Surrogate(Source):
         self.forward = compiled_phi(predictor) or (surrogate.phi if surrogate.fused else predictor.phi)
 
     def phi(self, window):
-        """Next xy (B, SLOTS, 2): the teacher's network in float64 by a numba kernel (surrogate.kernels: ~2x faster than
-        onnxruntime at batch 1), else a fused export's forward pass (onnxruntime: ~4x faster than torch eager, equal to
-        ~1e-5 m), else the predictor's."""
-        return self.forward(window)
+        """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the teacher's network in float64 by a numba kernel
+        (surrogate.kernels: ~2x faster than onnxruntime at batch 1), else a fused export's forward pass (onnxruntime: ~4x
+        faster than torch eager, equal to ~1e-5 m), else the predictor's. Each distinct window of the step being planned
+        is computed once, the new ones of a batch in one call: a step's candidates share most of theirs (mpc=interactive:
+        1.2 thousand distinct of 2.9 thousand windows a step on the bench's dense states; the first window of every
+        rollout, and a closed-loop candidate's until its policy departs from its siblings')."""
+        memo = self.seen[1]
+        keys = [w.tobytes() for w in window]
+        new = {k: b for b, k in enumerate(keys) if k not in memo}  # a dict: a window repeated in the batch counts once
+        if new:
+            memo.update(zip(new, self.forward(window[list(new.values())])))
+        return np.stack([memo[k] for k in keys])
 
-    def values(self, history, ego_futures):
-        """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2). A step's rollouts all start from
-        its observed window and revisit some windows (one in seven on the bench's states), each a teacher pass of ~0.2
-        ms: single windows are computed once per history."""
-        history, ego_futures = np.asarray(history, dtype=float), np.asarray(ego_futures, dtype=float)
+    def react(self, history, ego_next, T, B):
+        """Source.react with the memo of windows kept for one history (a step): a closed loop's does not grow."""
+        history = np.asarray(history, dtype=float)
         if self.seen[0] is None or not np.array_equal(self.seen[0], history):
             self.seen = (history.copy(), {})
-        memo = self.seen[1]
-
-        def once(window):
-            key = window.tobytes()
-            if key not in memo:
-                memo[key] = self.phi(window)
-            return memo[key]
-
-        batch = np.broadcast_to(history, (len(ego_futures),) + history.shape)
-        return rollout(lambda w: np.broadcast_to(once(history[None]), (len(w),) + w.shape[2:]) if w is batch else
-                       once(w) if len(w) == 1 else self.phi(w), batch, ego_futures)
+        return super().react(history, ego_next, T, B)
 
     def jacobian(self, history, ego_future):
         """Values (T_p, SLOTS, 2) and d values / d ego_future (T_p, SLOTS, 2, T_p, 2) with the surrogate's local Jacobians,
