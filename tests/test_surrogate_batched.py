@@ -1,7 +1,7 @@
 """The surrogate source's fast path: a fused export's two halves (the source's forward pass, the learned J) give the
 fused graph's outputs, one J call for a whole rollout gives the per-window chain rule's values and derivative, a
-batch of plans gives each plan's values, the memo of windows holds one step's, and the teacher's compiled forward pass
-is the torch network's (speed: `make bench`)."""
+batch of plans gives each plan's values, the memo of windows holds one step's and computes each distinct window of a
+batch once, and the teacher's compiled forward pass is the torch network's (speed: `make bench`)."""
 import copy
 
 import numpy as np
@@ -83,6 +83,22 @@ def test_the_memo_keeps_one_step_and_batches_equal_single_plans(exported, states
     single = np.stack([fresh.values(h1, p[None])[0] for p in plans])
     np.testing.assert_allclose(batch, single, rtol=0, atol=1e-9)
     assert np.abs(batch[1] - batch[0])[:, 1:].max() > 1e-2  # the others respond: the plans are not one
+
+
+def test_a_closed_loop_batch_computes_each_distinct_window_once_and_equals_one_candidate_at_a_time(exported, states):
+    source = Surrogate("surrogate", None, exported)
+    calls, forward = [], source.forward
+    source.forward = lambda w: calls.append(len(w)) or forward(w)
+    history, _ = states[0]
+    steps = np.array([[1.0, 0.0], [1.0, 0.0], [1.2, 0.05]])  # m a step: the first two candidates are one policy
+    policy = lambda window, tau, steps=steps: window[:, -1, 0] + steps * (1 + 0.1 * tau)
+    T = 6
+    batch = source.react(history, policy, T, len(steps))
+    single = [Surrogate("surrogate", None, exported).react(history, lambda w, tau, s=s: policy(w, tau, s[None]), T, 1)[0]
+              for s in steps]
+    np.testing.assert_allclose(batch, np.stack(single), rtol=0, atol=1e-9)
+    assert calls == [1] + [2] * (T - 1)  # the shared observed window once, then each distinct policy's window once
+    assert np.abs(batch[2] - batch[0])[:, 1:].max() > 1e-3  # the others respond: the policies are not one
 
 
 def test_the_compiled_teacher_is_the_torch_network_to_float32_rounding(exported, states):
