@@ -94,7 +94,7 @@ class Surrogate(Source):
         new = {k: b for b, k in enumerate(keys) if k not in memo}  # a dict: a window repeated in the batch counts once
         if new:
             memo.update(zip(new, self.forward(window[list(new.values())])))
-        return np.array([memo[k] for k in keys])  # np.stack costs 3x more for these small arrays
+        return np.array([memo[k] for k in keys]).reshape(len(keys), *window.shape[2:])  # np.stack: 3x the cost
 
     def react(self, history, ego_next, T, B):
         """Source.react with the memo of windows kept for one history (a step): a closed loop's does not grow."""
