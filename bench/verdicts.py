@@ -95,11 +95,9 @@ def sources(cfg) -> dict:
 
 def verdicts(source, s, obs, plans) -> tuple:
     """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order, unsafe (K,): b_i < 0, unsafe only
-    once merged (K,)) of the K candidate plans (Delta, alpha, Z) as `source` judges them (Interactive.judge)."""
-    Delta, alpha, Z = plans
-    K, H = Delta.shape
-    values = source.values(obs.history, Z.reshape(K, H, 4)[:, :, :2])
-    judged = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
+    once merged (K,)) of the K candidate plans (Delta, alpha, Z) as `source` judges them (Interactive.judge's steps)."""
+    values = s.strategy.predict(obs, source, plans[2])  # kept, to say where a predicted collision comes
+    judged = s.strategy.verdicts(s, obs, values, *plans)
     merge = np.array([j.merge for j in judged])
     merges = merge < s.strategy.never(s)
     good = merges & [s.strategy.acceptable(s, j) for j in judged]

@@ -397,10 +397,14 @@ class Interactive:
         aims = [(z[4 * s.T_p - 3], z[4 * s.T_p - 1]) for z in Z]  # where it is, how fast, at T_p
         return names, Delta, alpha, Z, aims, values
 
+    @staticmethod
+    def predict(obs: Observation, source, Z):
+        """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout."""
+        return source.values(obs.history, Z.reshape(len(Z), -1, 4)[:, :, :2])
+
     def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
-        """The predictor's verdict on each open-loop candidate (K, H): one batched rollout of its values under every plan."""
-        K, H = Delta.shape
-        return self.verdicts(s, obs, source.values(obs.history, Z.reshape(K, H, 4)[:, :, :2]), Delta, alpha, Z)
+        """The predictor's verdict on each open-loop candidate (K, H) (predict, verdicts)."""
+        return self.verdicts(s, obs, self.predict(obs, source, Z), Delta, alpha, Z)
 
     def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H)."""
