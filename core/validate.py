@@ -341,6 +341,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
     "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
     "T_obs": Int(2, 21), "n_slots": Int(1), "plots": Bool(), "record_dir": Text(nullable=True), "tolerate_crashes": Bool(),
+    "judges": ListOf(Text()),
     # mpc: the values planner.mpc.Settings and planner.strategy check on their fields, but for the nodes they take whole
     "mpc.admm.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
     "mpc.admm.osqp.eps_abs": POS, "mpc.admm.osqp.eps_rel": POS, "mpc.admm.osqp.max_iter": Int(1),

@@ -27,6 +27,7 @@ class Source:
     needs_world = False  # reads the running world (the oracle): only the planner's closed loop, world=reactive
     differentiates = False  # derives from the predictor's forward pass alone, so it works over any predictor
     compiled = False  # the compiled core runs its rollout and chain rule itself (planner.jit_rollout.KERNELS)
+    judges = ()  # further Sources, the same predictor trained again (planner's `judges`), that also judge mpc=interactive's candidates
 
     def __init__(self, name, predictor):
         self.name, self.predictor = name, predictor

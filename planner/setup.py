@@ -8,7 +8,7 @@ from omegaconf import DictConfig
 from core.jobs import UserError, build, job_config
 from distill import certificate
 from planner import closed_loop, mpc
-from planner.gradients import Recording, WorldModel
+from planner.gradients import Recording, Source, WorldModel
 
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
@@ -49,7 +49,27 @@ def setup(cfg: DictConfig):
                         "themselves: use world=reactive")
     source = build(cfg.gradients)
     check_window(cfg, source.predictor)
+    source.judges = judges(cfg, source)
     return scenario, source, settings(cfg, scenario)
+
+
+def judges(cfg: DictConfig, source) -> tuple:
+    """The Sources of cfg.judges: the source's predictor loaded from each folder (another training of it), values only;
+    one UserError naming the key where the predictor reads no models or a folder's model does not load."""
+    if not cfg.judges:
+        return ()
+    if "models_dir" not in cfg.predictor:
+        raise UserError(f"judges={list(cfg.judges)}: predictor={source.predictor.name} reads no models; judges are other "
+                        "trainings of a trained predictor (student, teacher)")
+    out = []
+    for i, folder in enumerate(cfg.judges):
+        try:
+            predictor = build(cfg.predictor, models_dir=folder)
+        except UserError as e:
+            raise UserError(f"judges[{i}]={folder}: {e}") from e
+        check_window(cfg, predictor)
+        out.append(Source(f"{source.predictor.name} of {folder}", predictor))
+    return tuple(out)
 
 
 def check_window(cfg: DictConfig, predictor) -> None:

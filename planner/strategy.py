@@ -442,6 +442,10 @@ class Interactive:
         judged = self.judge(s, obs, source, Delta, alpha, Z)
         c_names, c_Delta, c_alpha, c_Z, c_aims, c_values = self.chased(s, obs, source)
         judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z)
+        for other in source.judges:  # each closed-loop candidate as driven against the source, its path then held fixed
+            worse = self.judge(s, obs, other, Delta, alpha, Z)
+            worse += self.judge(s, obs, other, c_Delta, c_alpha, c_Z) if len(c_Z) else []
+            judged = [j._replace(b_min=min(j.b_min, w.b_min), braking=max(j.braking, w.braking)) for j, w in zip(judged, worse)]
         names, aims, T = [*names, *c_names], [*aims, *c_aims], s.T_p  # the families' horizons differ; the MPC's is shared
         Delta, alpha = np.vstack([Delta[:, :T], c_Delta[:, :T]]), np.vstack([alpha[:, :T], c_alpha[:, :T]])
         Z = np.vstack([Z[:, :4 * T], c_Z[:, :4 * T]])

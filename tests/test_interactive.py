@@ -3,6 +3,7 @@ leaning in beside two target-lane cars (ahead and behind), and its config."""
 import numpy as np
 import pytest
 
+from core.jobs import UserError
 from planner import mpc, step
 from planner.gradients import Source
 from planner.setup import make
@@ -104,6 +105,27 @@ def test_a_predictor_that_sees_the_cut_in_force_the_driver_behind_refuses_the_ga
     assert verdict.merge < s.strategy.never(s) and verdict.braking == pytest.approx(0.0, abs=1e-9)
     name, verdict = best(s, obs, scripted(brake=6.0, trigger=2.0))  # entering its lane makes it brake at 6 m/s^2
     assert verdict.merge == s.strategy.never(s) and verdict.braking <= s.b_courtesy
+
+
+def test_a_candidate_counts_only_as_safe_and_courteous_as_the_worst_of_the_source_s_judges_finds_it():
+    s, obs = world(5.5, 5.5)  # the gap constant velocity takes (above)
+    trusting, doubting = scripted(), scripted(brake=6.0, trigger=2.0)
+    trusting.judges = (scripted(), doubting)
+    names, *_, judged = s.strategy.ranked(s, obs, None, trusting)
+    alone = [dict(zip(*[s.strategy.ranked(s, obs, None, source)[i] for i in (0, -1)])) for source in (scripted(), doubting)]
+    assert judged[0].merge == s.strategy.never(s) and judged[0].braking <= s.b_courtesy  # it waits, as the doubter does
+    for name, j in zip(names, judged):  # each open-loop plan (the same whoever judges): the worse of the two verdicts
+        if not name.startswith(("chase", "accept")):
+            mine, theirs = alone[0][name], alone[1][name]
+            assert j.braking == max(mine.braking, theirs.braking) and j.b_min == min(mine.b_min, theirs.b_min)
+            assert (j.merge, j.J) == (mine.merge, mine.J)
+
+
+def test_judges_are_other_trainings_of_a_trained_predictor():
+    with pytest.raises(UserError, match=r"judges=\['elsewhere'\]: predictor=cv reads no models"):
+        make("dense", ["gradients=cv", "mpc=interactive", "judges=[elsewhere]"])
+    with pytest.raises(UserError, match=r"judges\[0\]=no_such_folder: .*no_such_folder"):
+        make("dense", ["gradients=student", "mpc=interactive", "judges=[no_such_folder]"])
 
 
 @pytest.mark.parametrize("front,enters", [(6.0, True), (16.0, False)])
