@@ -45,11 +45,17 @@ class TeacherTask(_Task):
     `rollout_weight` x the Huber loss in units of `rollout_scale_m` of the Remark-2 rollout over the recorded horizon
     fed the recorded ego future: how the others answer the ego's moves is what the planner asks of the teacher. The
     rollout unit is wide so that the term is quadratic over the range of real responses and fits their mean, where
-    a centimetre unit (an L1 loss in effect) would fit the median and miss the rare hard-braking answers."""
+    a centimetre unit (an L1 loss in effect) would fit the median and miss the rare hard-braking answers.
+    With `brake_weight`, plus that times the Huber loss in units of `brake_scale` (m/s^2) of each other car's hardest
+    braking over the rollout, predicted against recorded: the figure the interactive step reads. A cut-in makes the
+    car behind brake once, hard, at a step a window fixes only to within a step or two; positions alone are fit best by
+    a braking spread over those steps, whose peak is a fraction of the world's."""
 
     def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, rollout_weight: float,
-                 rollout_scale_m: float, contrast_weight: float):
-        """scale_m, rollout_scale_m: loss units (m) of the one-step and rollout terms; rollout_weight, contrast_weight (-)."""
+                 rollout_scale_m: float, contrast_weight: float, brake_weight: float = 0.0, brake_scale: float = 1.0,
+                 dt: float = 0.2):
+        """scale_m, rollout_scale_m: loss units (m) of the one-step and rollout terms; rollout_weight, contrast_weight,
+        brake_weight (-); brake_scale: the braking term's unit (m/s^2); dt: the data's step (s)."""
         super().__init__(net, lr, weight_decay)
 
     def _step(self, batch, stage):
@@ -72,6 +78,11 @@ class TeacherTask(_Task):
             huber = torch.nn.functional.huber_loss(later, torch.zeros_like(later), reduction="sum")
             loss = loss + self.hparams.rollout_weight * huber / mask[:, 1:].expand_as(later).sum().clamp(min=1)
             values["ade_rollout_m"] = dist.sum() / mask.sum()
+            if self.hparams.brake_weight:
+                pred, true = (hardest_braking(X, f, mask[:, :, 0, 0], self.hparams.dt) for f in (err + others[:, :horizon], others[:, :horizon]))
+                values["brake_err"] = (pred - true).abs().mean()
+                loss = loss + self.hparams.brake_weight * torch.nn.functional.huber_loss(
+                    pred / self.hparams.brake_scale, true / self.hparams.brake_scale)
         self._log(stage, loss=loss, **values)
         return loss
 
@@ -80,6 +91,15 @@ class TeacherTask(_Task):
         X (G, S, T_obs, SLOTS, 2), ego (G, S, H, 2), others (G, S, H, N, 2), mask (G, S, H), member (G, S)."""
         pred = group_rollout(self.net, X, ego)
         return branch_contrast(pred, others, member[:, :, None] & mask, self.hparams.rollout_scale_m)
+
+
+def hardest_braking(X, others, mask, dt):
+    """Each other car's hardest braking (B, N) in m/s^2 (0 if none) over its future xy `others` (B, H, N, 2) after the
+    windows X (B, T_obs, SLOTS, 2): second differences of x, the last two observed steps first, over the steps `mask`
+    (B, H) keeps."""
+    x = torch.cat([X[:, -2:, 1:, 0], others[..., 0]], dim=1)  # (B, H + 2, N)
+    acc = (x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2]) / dt**2
+    return torch.relu(-torch.where(mask[:, :, None].bool(), acc, torch.zeros_like(acc)).amin(dim=1))
 
 
 def group_rollout(net, X, ego):

@@ -8,11 +8,12 @@ from omegaconf import OmegaConf
 
 from conftest import compose_cfg
 from core.jobs import UserError
+from core.rollout import rollout
 from data import dataset
 from distill.datamodule import futures, groups, teacher_rollouts
 from distill.metrics import rollout_cases
 from distill.models import TorchPredictor
-from distill.tasks import StudentTask, TeacherTask, group_rollout
+from distill.tasks import StudentTask, TeacherTask, group_rollout, hardest_braking
 
 NET = {"_target_": "distill.teacher.SocialTeacher", "hidden": 8, "pool": 8, "decoder": [16], "pos_scale": 10.0,
        "vel_scale": 0.5, "acc_scale": 0.05}
@@ -54,6 +55,34 @@ def test_rollout_term_sees_only_the_steps_the_run_reached(tiny_dataset):
     assert task._step((X, ego, junk, mask), "val").item() == pytest.approx(base)
     junk[:, 3] += 0.5  # 0.5 m more error at a reached step: counted (its size depends on the untrained net's errors)
     assert task._step((X, ego, junk, mask), "val").item() > base + 0.01
+
+
+def test_hardest_braking_is_each_car_s_largest_deceleration_over_the_steps_reached():
+    dt, H = 0.2, 6
+    X = torch.zeros(1, 8, 3, 2)
+    X[0, :, 1:, 0] = torch.arange(8.0)[:, None] * 5.0 * dt  # two cars at 5 m/s
+    v = torch.full((H, 2), 5.0)
+    v[2:, 0] -= 3.0 * dt  # car 1 brakes at 3 m/s^2 for one step
+    v[4:, 1] -= 6.0 * dt  # car 2 at 6 m/s^2, but the run ends before that step
+    others = torch.zeros(1, H, 2, 2)
+    others[0, :, :, 0] = X[0, -1, 1:, 0] + torch.cumsum(v * dt, 0)
+    mask = torch.tensor([[True] * 4 + [False] * 2])
+    assert hardest_braking(X, others, mask, dt)[0].tolist() == pytest.approx([3.0, 0.0])
+    assert hardest_braking(X, others, torch.ones(1, H, dtype=torch.bool), dt)[0].tolist() == pytest.approx([3.0, 6.0])
+
+
+def test_the_braking_term_adds_the_huber_error_of_the_predicted_hardest_braking(tiny_dataset):
+    torch.manual_seed(0)
+    args = dict(scale_m=0.01, rollout_weight=10.0, rollout_scale_m=1.0, contrast_weight=0.0)
+    plain, braking = TeacherTask(NET, 1e-3, 0.0, **args), TeacherTask(NET, 1e-3, 0.0, **args, brake_weight=2.0, dt=0.2)
+    braking.net.load_state_dict(plain.net.state_dict())
+    for task in (plain, braking):
+        task.log = lambda *a, **k: None
+    X, ego, others, mask = batch(tiny_dataset)
+    pred = rollout(plain.net, X, ego)[:, :, 1:]
+    want = torch.nn.functional.huber_loss(*(hardest_braking(X, f, mask, 0.2) for f in (pred, others)))
+    step = lambda task: task._step((X, ego, others, mask), "val").item()
+    assert step(braking) - step(plain) == pytest.approx(2.0 * want.item(), rel=1e-4)
 
 
 def test_without_the_rollout_term_the_loss_is_the_one_step_huber(tiny_dataset):
