@@ -184,11 +184,12 @@ def cost_gap(J_admm, J_ipopt) -> np.ndarray:
 
 
 def kernels() -> set:
-    """The profile keys (file, line, name) of the numba kernels (the compiled core's, Chase's step): cProfile sees a dispatcher call as its
+    """The profile keys (file, line, name) of the numba kernels (the compiled core's, the interactive search's): cProfile sees a dispatcher call as its
     Python function's, and a call of its compiled entry point (planner.jit_admm.typed_call) as a built-in method's."""
-    from planner import daqp_qp, jit_admm, jit_chase, jit_rollout, jit_zstep
+    from planner import daqp_qp, jit_admm, jit_chase, jit_interactive, jit_rollout, jit_zstep
 
-    funcs = [f.py_func for m in (daqp_qp, jit_admm, jit_chase, jit_rollout, jit_zstep) for f in vars(m).values() if hasattr(f, "py_func")]
+    funcs = [f.py_func for m in (daqp_qp, jit_admm, jit_chase, jit_interactive, jit_rollout, jit_zstep)
+             for f in vars(m).values() if hasattr(f, "py_func")]
     return ({(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
             | {("~", 0, f"<built-in method {f.__module__}.{f.__name__}>") for f in funcs})
 

@@ -3,6 +3,24 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba.extending import register_jitable
+
+
+@register_jitable  # plain Python here, and compiled where a numba kernel calls it (planner.jit_interactive.chase)
+def desired_gap(v, dv, T, s0, a_max, b):
+    """IDM desired bumper gap s* (m) at speed v and approach rate dv = v - v_leader (m/s), scalars, with IDMDriver's
+    parameters: builtins, as numpy costs microseconds per scalar and a world step asks this of every car."""
+    return s0 + max(v * T + v * dv / (2.0 * math.sqrt(a_max * b)), 0.0)
+
+
+@register_jitable
+def idm(v, gap, v_lead, v0, T, s0, a_max, b, delta):
+    """IDM acceleration (m/s^2) at speed v behind a leader `gap` metres ahead driving at v_lead (m/s); free road where
+    gap is NaN; IDMDriver's parameters."""
+    free = a_max * (1.0 - (max(v, 0.0) / v0) ** delta)
+    if math.isnan(gap):
+        return free
+    return free - a_max * (desired_gap(v, v - v_lead, T, s0, a_max, b) / max(gap, 0.1)) ** 2
 
 
 @dataclass(frozen=True)
@@ -28,18 +46,18 @@ class IDMDriver:
     a_bias: float = 1.5  # MOBIL keep-right bias: extra gain a move to the left must bring (m/s^2)
     b_safe: float = 2.0  # MOBIL largest braking a lane change may impose on the new follower (m/s^2)
 
+    @property
+    def following(self) -> tuple:
+        """(v0, T, s0, a_max, b, delta): the parameters `idm` takes after v, gap and v_lead."""
+        return self.v0, self.T, self.s0, self.a_max, self.b, self.delta
+
     def desired_gap(self, v, dv):
-        """IDM desired bumper gap s* (m) at speed v and approach rate dv = v - v_leader (m/s), scalars: builtins, as
-        numpy costs microseconds per scalar and a world step asks this of every car."""
-        return self.s0 + max(v * self.T + v * dv / (2.0 * math.sqrt(self.a_max * self.b)), 0.0)
+        """IDM desired bumper gap s* (m) at speed v and approach rate dv = v - v_leader (m/s), scalars."""
+        return desired_gap(v, dv, self.T, self.s0, self.a_max, self.b)
 
     def acceleration(self, v, gap=None, v_lead=None):
         """IDM acceleration (m/s^2) behind a leader `gap` metres ahead driving at v_lead; free road if gap is None."""
-        free = self.a_max * (1.0 - (max(v, 0.0) / self.v0) ** self.delta)
-        if gap is None:
-            return free
-        s = max(gap, 0.1)
-        return free - self.a_max * (self.desired_gap(v, v - v_lead) / s) ** 2
+        return idm(v, math.nan if gap is None else gap, v_lead, self.v0, self.T, self.s0, self.a_max, self.b, self.delta)
 
     def equilibrium_gap(self, v):
         """Bumper gap (m) at which this driver follows a leader steadily at speed v (< v0)."""

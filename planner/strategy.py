@@ -19,7 +19,7 @@ from core.rollout import accelerations, b_i
 from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
-from planner import admm, jit_chase
+from planner import admm, jit_chase, jit_interactive, jit_rollout
 from planner.mpc import Observation, Settings, costs, lane_plans, planned, simulate, start_point, warm_start
 
 NONNEG = Real(0)
@@ -220,6 +220,12 @@ def drive(s: Settings, z, y_target, a):
     return d, a, bicycle.step(z, np.array([d, a]).T, p)  # np.stack took 4 us more
 
 
+def car(s: Settings) -> tuple:
+    """jit_interactive.drive's car: (l_f, l_r m, dt s, psi_box rad, delta_box rad, a_box m/s^2), as drive reads s."""
+    p = s.params
+    return tuple(float(c) for c in (p.l_f, p.l_r, p.dt, *s.psi_box, *s.delta_box, *s.a_box))
+
+
 def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x: float = 1.0):
     """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
     (K, H) in m (drive) while their speed approaches v_target (K, H) in m/s with time constant tau (s); where x_target
@@ -280,6 +286,15 @@ class Chase:
         self.alpha.append(a)
         self.Z.append(self.z)
         return self.z[:, :2]
+
+    def compiled(self, params, history, T: int):
+        """Delta, alpha (K, T), Z (K, 4T) and the predicted xy (K, T, SLOTS, 2) of these candidates driven T steps
+        against a predictor the compiled core runs (params: jit_rollout.compiled_params) from the observed history
+        (T_obs, SLOTS, 2), in one compiled call (jit_interactive.chase): Source.react(history, self, T, K)'s, to rounding."""
+        s = self.s
+        lane = (s.params.dt, s.road.lane_width, float(s.road.lanes), float(s.road.lane_of(s.y_ref)))
+        return jit_interactive.chase(*params, np.asarray(history, float), self.z, self.gaps, self.dv, self.lean_y,
+                                     self.clearance, T, self.constants, lane, car(s), self.FOLLOW.following)
 
 
 def unseen(s: Settings, history) -> tuple:
@@ -351,9 +366,10 @@ class Interactive:
         """The merge step of a verdict whose candidate does not merge: one past both families' horizons."""
         return max(self.horizon, self.chase_horizon, s.T_p) + 1
 
-    def plans(self, s: Settings, obs: Observation, warm):
+    def plans(self, s: Settings, obs: Observation, warm, compiled: bool = False):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every open-loop candidate over the
-        horizon H."""
+        horizon H; compiled: their bicycle rollouts by jit_interactive.track (track's numbers, to rounding), as for the
+        sources the compiled core runs."""
         H, y0 = max(self.horizon, s.T_p), obs.z0[1]
         lane_y = s.road.centre(s.road.lane_of(y0))
         towards = np.sign(s.y_ref - lane_y)
@@ -366,7 +382,8 @@ class Interactive:
         x_t = np.array([x for _ in lateral for _, x in pace.values()])
         v_t = np.array([v for _ in lateral for v, _ in pace.values()])
         v_t = np.where((y_t == s.y_ref) & np.isnan(x_t), entering_speed(s, obs.history), v_t)  # in the lane: its leader's pace
-        Delta, alpha, Z = track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x)
+        Delta, alpha, Z = (jit_interactive.track(np.asarray(obs.z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s))
+                           if compiled else track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x))
         aims = [(y[s.T_p - 1], z[4 * s.T_p - 1]) for y, z in zip(y_t, Z)]  # its lateral target, the speed it reaches
         if warm is not None:  # the shifted previous plan, its last control held beyond it
             prev = start_point(s, obs, warm)[0]
@@ -379,7 +396,8 @@ class Interactive:
 
     def chased(self, s: Settings, obs: Observation, source):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims, values (K, H, SLOTS, 2)) of the closed-loop candidates
-        (Chase), each driven against the predictor's rollout in one batched recursion."""
+        (Chase), each driven against the predictor's rollout in one batched recursion; for a source the compiled core
+        runs, in one compiled call (Chase.compiled)."""
         H, lane_y = max(self.chase_horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
         lean_y = [lane_y + np.sign(s.y_ref - lane_y) * d for d in self.chase_lean]
         combos = [(f"chase gap {g}", f, b, y, c, np.nan) for g, f, b in gaps(s, obs.history) for y in lean_y
@@ -391,23 +409,35 @@ class Interactive:
         _, front, back, lean, clear, dv = zip(*combos)
         policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, self.tau, self.tau_x,
                        self.align, unseen(s, obs.history), dv)
-        values = source.react(obs.history, policy, H, len(combos))
+        params = jit_rollout.compiled_params(source)
+        if params is None:
+            values = source.react(obs.history, policy, H, len(combos))
+            Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
+        else:
+            Delta, alpha, Z, values = policy.compiled(params, obs.history, H)
         names = [f"{what}, lean to {y:.2f} m, enter at {c} m" for what, _, _, y, c, _ in combos]
-        Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
         aims = [(z[4 * s.T_p - 3], z[4 * s.T_p - 1]) for z in Z]  # where it is, how fast, at T_p
         return names, Delta, alpha, Z, aims, values
 
     @staticmethod
     def predict(obs: Observation, source, Z):
-        """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout."""
-        return source.values(obs.history, Z.reshape(len(Z), -1, 4)[:, :, :2])
+        """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
+        one compiled call for a source the compiled core runs (jit_interactive.open_loop)."""
+        ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
+        params = jit_rollout.compiled_params(source)
+        if params is None:
+            return source.values(obs.history, ego)
+        return jit_interactive.open_loop(*params, np.asarray(obs.history, float), np.ascontiguousarray(ego))
 
     def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
         """The predictor's verdict on each open-loop candidate (K, H) (predict, verdicts)."""
-        return self.verdicts(s, obs, self.predict(obs, source, Z), Delta, alpha, Z)
+        return self.verdicts(s, obs, self.predict(obs, source, Z), Delta, alpha, Z, source.compiled)
 
-    def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
-        """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H)."""
+    def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
+        """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
+        jit_interactive.verdicts (these numbers, to rounding), as for the sources the compiled core runs."""
+        if compiled:
+            return self.compiled_verdicts(s, obs, values, Delta, alpha, Z)
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
         b = b_i(values.reshape(K * H, *values.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H): every step of every candidate at once
@@ -421,6 +451,14 @@ class Interactive:
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
         return [Judged(*x) for x in zip(b, braking, merge, J, overrun)]
+
+    def compiled_verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
+        """verdicts in one compiled call (jit_interactive.verdicts)."""
+        shape = tuple(float(c) for c in (s.R, s.stretch, s.shape, s.params.dt))
+        road = (float(s.y_ref), float(self.merge_tol), -2.0 * float(s.a_box[0]), float(self.lane_end), self.never(s))
+        forms = tuple((f.P, f.q, float(f.r)) for f in costs(s, obs.u_prev))
+        out = jit_interactive.verdicts(values, np.asarray(obs.history, float), Delta, alpha, Z, shape, road, forms, s.T_p)
+        return [Judged(*x) for x in zip(*(a.tolist() for a in out))]
 
     @staticmethod
     def acceptable(s: Settings, j: Judged) -> bool:
@@ -438,10 +476,10 @@ class Interactive:
     def ranked(self, s: Settings, obs: Observation, warm, source):
         """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, T_p), alpha (K, T_p),
         Z (K, 4T_p), aims [(y m, v m/s)], verdicts), each in that order."""
-        names, Delta, alpha, Z, aims = self.plans(s, obs, warm)
+        names, Delta, alpha, Z, aims = self.plans(s, obs, warm, source.compiled)
         judged = self.judge(s, obs, source, Delta, alpha, Z)
         c_names, c_Delta, c_alpha, c_Z, c_aims, c_values = self.chased(s, obs, source)
-        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z)
+        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z, source.compiled)
         for other in source.judges:  # each closed-loop candidate as driven against the source, its path then held fixed
             worse = self.judge(s, obs, other, Delta, alpha, Z)
             worse += self.judge(s, obs, other, c_Delta, c_alpha, c_Z) if len(c_Z) else []

@@ -2,10 +2,12 @@
 leaning in beside two target-lane cars (ahead and behind), and its config."""
 import numpy as np
 import pytest
+from test_surrogate import smooth_student
 
 from core.jobs import UserError
+from distill.models import StudentPredictor
 from planner import mpc, step
-from planner.gradients import Source
+from planner.gradients import ExactLocal, Source
 from planner.setup import make
 from planner.strategy import Chase, Interactive, Judged, gaps, paces, track, unseen
 
@@ -268,3 +270,24 @@ def test_chase_drives_its_candidates_together_as_each_alone():
             assert np.array_equal(both[k:k + 1], alone)
     y = together[2].reshape(len(combos), H, 4)[:, -1, 1]
     assert 0 < np.sum(np.abs(y - s.y_ref) < 0.5) < len(combos)  # some candidates entered and followed, others did not
+
+
+@pytest.mark.parametrize("predictor", ["cv", "student"])
+def test_the_compiled_search_ranks_and_judges_its_candidates_as_the_python_reference(predictor):
+    """For the sources the compiled core runs (cv, the student) the candidates' bicycle rollouts, predicted rollouts,
+    Chase and verdicts are planner.jit_interactive's: the same candidates in the same order, their plans and verdicts
+    equal to rounding, as planner.strategy's numpy code gives for the same predictor as a plain Source."""
+    s, obs = world(6.0, 3.0, lane_end=120.0)
+    obs.history[:, 2, 0] -= np.arange(-7, 1) ** 2 * DT**2 * 0.5  # the car behind has been braking at 1 m/s^2: the student reacts
+    warm = mpc.planned(s, obs.z0, *(u[0] for u in mpc.lane_plans(s, obs.z0, [0.0])))  # a previous plan: the shifted candidate too
+    source = make("dense", ["gradients=cv"])[1] if predictor == "cv" else ExactLocal("student", StudentPredictor(smooth_student()))
+    reference = Source(predictor, source.predictor)
+    assert source.compiled and not reference.compiled
+    compiled, python = (s.strategy.ranked(s, obs, warm, src) for src in (source, reference))
+    assert compiled[0] == python[0]  # names, best first
+    for a, b in zip(compiled[1:4], python[1:4]):
+        assert np.allclose(a, b, rtol=0.0, atol=1e-9)
+    judged, expected = np.array(compiled[5], float), np.array(python[5], float)
+    assert np.allclose(judged, expected, rtol=1e-12, atol=1e-9)
+    merged = judged[:, 2] < s.strategy.never(s)
+    assert 0 < merged.sum() < len(judged) and any(n.startswith(("chase", "accept")) for n in np.array(compiled[0])[merged])

@@ -1,0 +1,214 @@
+"""mpc=interactive's candidate search (planner.strategy.Interactive) compiled for the predictors the compiled core runs
+itself (cv and the student: planner.jit_rollout.compiled_params): the open-loop candidates' bicycle rollouts (`track`),
+every candidate's predicted rollout with its plan fixed (`open_loop`) or answering the predictor step by step (`chase`:
+strategy.Chase against the predictor's recursion), and the verdicts on them (`verdicts`), each one numba call. In Python
+these were ~2,000 numpy calls on arrays of tens of elements a step, most of the interactive step's time.
+
+planner.strategy's numpy code stays the reference and serves every other source. The arithmetic is the same, in the same
+order, but numba's libm arctan, tan, tanh, pow and erf differ from numpy's SIMD loops and scipy's erf in the last bit
+for some arguments, and the costs J and the student's layers sum in another order: the numbers agree to ~1e-15
+relative, not bit for bit (tests/test_interactive.py)."""
+import math
+
+import numpy as np
+from numba import njit
+
+from data.drivers import idm
+from planner.jit_chase import chase_step
+
+
+@njit(cache=True)
+def drive(z, y_target, a, car):
+    """strategy.drive for one ego in state z (4,) (x, y m, psi rad, v m/s), steering to y_target (m), accelerating at a
+    (m/s^2): its controls delta (rad), a (m/s^2), and its next state, written into z; car = (l_f, l_r, dt, psi_lo,
+    psi_hi, delta_lo, delta_hi, a_lo, a_hi): the bicycle's geometry (m), step (s) and the boxes."""
+    l_f, l_r, dt, psi_lo, psi_hi, d_lo, d_hi, a_lo, a_hi = car
+    x, y, psi, v = z[0], z[1], z[2], z[3]
+    v_1 = max(v, 1.0)  # steering gains as at 1 m/s below it
+    psi_d = min(max(math.atan(0.6 * (y_target - y) / v_1), psi_lo), psi_hi)
+    d = min(max((l_f + l_r) * 2.0 * (psi_d - psi) / v_1, d_lo), d_hi)
+    a = max(min(max(a, a_lo), a_hi), -v / dt)
+    beta = math.atan(l_r / (l_f + l_r) * math.tan(d))  # data.bicycle.step from here
+    z[0] = x + dt * v * math.cos(psi + beta)
+    z[1] = y + dt * v * math.sin(psi + beta)
+    z[2] = psi + dt * v / l_r * math.sin(beta)
+    z[3] = v + dt * a
+    return d, a
+
+
+@njit(cache=True)
+def track(z0, y_target, v_target, x_target, tau, tau_x, car):
+    """strategy.track: controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates from z0 (4,) steering to
+    y_target (K, H) m while their speed approaches v_target (K, H) m/s with time constant tau (s), closing on x_target
+    (K, H) m with time constant tau_x (s) where it is not NaN."""
+    K, H = y_target.shape
+    Delta, alpha, Z = np.empty((K, H)), np.empty((K, H)), np.empty((K, 4 * H))
+    for k in range(K):
+        z = z0.copy()
+        for t in range(H):
+            closing = 0.0 if math.isnan(x_target[k, t]) else (x_target[k, t] - z[0]) / tau_x
+            v_aim = max(0.0, v_target[k, t] + closing)
+            Delta[k, t], alpha[k, t] = drive(z, y_target[k, t], (v_aim - z[3]) / tau, car)
+            Z[k, 4 * t:4 * t + 4] = z
+    return Delta, alpha, Z
+
+
+@njit(cache=True)
+def next_xy(Ws, bs, s, windows):
+    """The predictor's next xy (B, SLOTS, 2) in m of windows (B, T_obs, SLOTS, 2): constant velocity where s is empty,
+    else the student from its float64 weights (jit_rollout.student_params; distill.student.phi_jac64's values), its
+    layers batched over the windows (BLAS)."""
+    B = windows.shape[0]
+    nxt = 2.0 * windows[:, -1] - windows[:, -2]
+    if len(s) == 0:
+        return nxt
+    h = windows.reshape(B, -1)
+    for k in range(len(Ws) - 1):
+        a = h @ Ws[k].T + bs[k]
+        h = np.empty_like(a)
+        for i in range(a.shape[0]):
+            for j in range(a.shape[1]):
+                h[i, j] = a[i, j] * (0.5 * (1.0 + math.erf(a[i, j] / math.sqrt(2.0))))  # exact GELU
+    t = np.tanh(h @ Ws[-1].T + bs[-1])
+    for b in range(B):
+        for r in range(len(s)):
+            nxt[b, 1 + r // 2, r % 2] += s[r] * t[b, r]
+    return nxt
+
+
+@njit(cache=True)
+def repeat(a, K):
+    """K copies of the array a stacked on a new first axis."""
+    out = np.empty((K,) + a.shape)
+    for k in range(K):
+        out[k] = a
+    return out
+
+
+@njit(cache=True)
+def shift(windows, nxt):
+    """Move every window (B, T_obs, SLOTS, 2) on by one step, in place: the oldest dropped, nxt (B, SLOTS, 2) appended."""
+    for t in range(windows.shape[1] - 1):
+        windows[:, t] = windows[:, t + 1]
+    windows[:, -1] = nxt
+
+
+@njit(cache=True)
+def open_loop(Ws, bs, s, history, ego):
+    """Predicted xy (K, H, SLOTS, 2) in m of every slot under K fixed ego plans, the ego's xy (K, H, 2) at steps 1..H,
+    from the observed history (T_obs, SLOTS, 2): core.rollout.rollout by next_xy's predictor."""
+    K, H = ego.shape[0], ego.shape[1]
+    windows, values = repeat(history, K), np.empty((K, H, history.shape[1], 2))
+    for t in range(H):
+        nxt = next_xy(Ws, bs, s, windows)
+        nxt[:, 0] = ego[:, t]
+        values[:, t] = nxt
+        shift(windows, nxt)
+    return values
+
+
+@njit(cache=True)
+def target_lane(windows, dt, lane_width, lanes, target):
+    """strategy.target_lane of windows (K, T_obs, SLOTS, 2): x (K, SLOTS) m, v (K, SLOTS) m/s at the last step, and
+    whether each car is in lane `target` (of `lanes`, lane_width m wide; the ego's slot False)."""
+    x, y = windows[:, -1, :, 0].copy(), windows[:, -1, :, 1]
+    v = (x - windows[:, -2, :, 0]) / dt
+    there = np.zeros(x.shape, np.bool_)
+    for b in range(x.shape[0]):
+        for i in range(1, x.shape[1]):
+            there[b, i] = min(max(np.rint(y[b, i] / lane_width), 0.0), lanes - 1.0) == target
+    return x, v, there
+
+
+@njit(cache=True)
+def chase(Ws, bs, s, history, z, gaps, dv, lean_y, clearance, T, chase_constants, lane, car, follow):
+    """strategy.Chase's K candidates driven T steps against next_xy's predictor from the observed history (T_obs,
+    SLOTS, 2), as Source.react(history, Chase(...), T, K) drives them: Delta, alpha (K, T), Z (K, 4T) and the predicted
+    xy (K, T, SLOTS, 2). z (K, 4): the egos' states (not modified); gaps (K, 2), dv, lean_y, clearance (K,) and
+    chase_constants: Chase's own (jit_chase.chase_step's scalars after k); lane = (dt s, lane_width m, lanes, the
+    target lane); car: drive's; follow: the IDM parameters (v0, T, s0, a_max, b, delta) of the ego's car-following
+    once in the target lane (Chase.FOLLOW)."""
+    K = len(gaps)
+    windows, z = repeat(history, K), z.copy()
+    Delta, alpha, Z = np.empty((K, T)), np.empty((K, T)), np.empty((K, 4 * T))
+    values = np.empty((K, T, history.shape[1], 2))
+    for k in range(T):
+        x, v, there = target_lane(windows, *lane)
+        a, y_t, following, gap, v_lead, cap = chase_step(x, v, there, z, gaps, dv, lean_y, clearance, k, *chase_constants)
+        for b in range(K):
+            if following[b]:
+                a[b] = min(idm(z[b, 3], gap[b], v_lead[b], *follow), cap[b])
+            Delta[b, k], alpha[b, k] = drive(z[b], y_t[b], a[b], car)
+            Z[b, 4 * k:4 * k + 4] = z[b]
+        nxt = next_xy(Ws, bs, s, windows)
+        nxt[:, 0] = z[:, :2]
+        values[:, k] = nxt
+        shift(windows, nxt)
+    return Delta, alpha, Z, values
+
+
+@njit(cache=True)
+def quadratic(P, q, r, x):
+    """1/2 x'Px + q'x + r (planner.cost.Quadratic)."""
+    out = 0.0
+    for i in range(len(x)):
+        Px = 0.0
+        for j in range(len(x)):
+            Px += P[i, j] * x[j]
+        out += 0.5 * x[i] * Px + q[i] * x[i]
+    return out + r
+
+
+@njit(cache=True)
+def b_min(values, R, stretch, p):
+    """The least b_i (m^2) over every step and car of a rollout's values (H, SLOTS, 2): core.rollout.b_i's shape (R m,
+    stretch, p), inf without cars."""
+    out = np.inf
+    for t in range(values.shape[0]):
+        for i in range(1, values.shape[1]):
+            sq0, sq1 = (values[t, 0, 0] - values[t, i, 0]) ** 2, (values[t, 0, 1] - values[t, i, 1]) ** 2
+            if p == 2.0:
+                b = sq0 / stretch**2 + sq1 - R**2
+            else:
+                b = R**2 * ((sq0 / (stretch * R) ** 2) ** (p / 2) + (sq1 / R**2) ** (p / 2)) ** (2 / p) - R**2
+            out = min(out, b)
+    return out
+
+
+@njit(cache=True)
+def braking(values, history, dt):
+    """The hardest braking (m/s^2, >= 0) of another car along the road over a rollout's values (H, SLOTS, 2), the last
+    two observed steps of history (T_obs, SLOTS, 2) first (core.rollout.accelerations)."""
+    least = 0.0
+    for i in range(1, values.shape[1]):
+        x_2, x_1 = history[-2, i, 0], history[-1, i, 0]
+        for t in range(values.shape[0]):
+            x = values[t, i, 0]
+            least = min(least, (x - 2.0 * x_1 + x_2) / dt**2)
+            x_2, x_1 = x_1, x
+    return max(0.0, -least)
+
+
+@njit(cache=True)
+def verdicts(values, history, Delta, alpha, Z, shape, road, costs, T_p):
+    """Interactive.verdicts of the predicted values (K, H, SLOTS, 2) on K candidates (Delta, alpha (K, H), Z (K, 4H)):
+    b_min (K,) m^2, braking (K,) m/s^2, merge (K,) steps, J (K,) over T_p and overrun (K,) m. shape = (R m, stretch,
+    p, dt s); road = (y_ref m, merge_tol m, brake = -2 a_min m/s^2, lane_end m, never: the merge step of no merge);
+    costs: (P, q, r) of Phi_1, Phi_2, Phi_3 (planner.mpc.costs)."""
+    R, stretch, p, dt = shape
+    y_ref, merge_tol, brake, lane_end, never = road
+    (P1, q1, r1), (P2, q2, r2), (P3, q3, r3) = costs
+    K, H = Delta.shape
+    b, braked, merge = np.empty(K), np.empty(K), np.full(K, never, np.int64)
+    J, overrun = np.empty(K), np.zeros(K)
+    for k in range(K):
+        b[k], braked[k] = b_min(values[k], R, stretch, p), braking(values[k], history, dt)
+        for t in range(H):
+            if abs(Z[k, 4 * t + 1] - y_ref) <= merge_tol:  # as the episode counts it: astride the line is not in
+                merge[k] = t + 1
+                break
+            reach = Z[k, 4 * t] + Z[k, 4 * t + 3] ** 2 / brake - lane_end
+            overrun[k] = max(overrun[k], reach)
+        J[k] = (quadratic(P1, q1, r1, Delta[k, :T_p]) + quadratic(P2, q2, r2, alpha[k, :T_p])
+                + quadratic(P3, q3, r3, Z[k, :4 * T_p]))
+    return b, braked, merge, J, overrun
