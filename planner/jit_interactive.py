@@ -23,17 +23,36 @@ def drive(z, y_target, a, car):
     (m/s^2): its controls delta (rad), a (m/s^2), and its next state, written into z; car = (l_f, l_r, dt, psi_lo,
     psi_hi, delta_lo, delta_hi, a_lo, a_hi): the bicycle's geometry (m), step (s) and the boxes."""
     l_f, l_r, dt, psi_lo, psi_hi, d_lo, d_hi, a_lo, a_hi = car
-    x, y, psi, v = z[0], z[1], z[2], z[3]
+    y, psi, v = z[1], z[2], z[3]
     v_1 = max(v, 1.0)  # steering gains as at 1 m/s below it
     psi_d = min(max(math.atan(0.6 * (y_target - y) / v_1), psi_lo), psi_hi)
     d = min(max((l_f + l_r) * 2.0 * (psi_d - psi) / v_1, d_lo), d_hi)
     a = max(min(max(a, a_lo), a_hi), -v / dt)
-    beta = math.atan(l_r / (l_f + l_r) * math.tan(d))  # data.bicycle.step from here
+    advance(z, d, a, l_f, l_r, dt)
+    return d, a
+
+
+@njit(cache=True)
+def advance(z, d, a, l_f, l_r, dt):
+    """data.bicycle.step for one car: its state z (4,) one step of dt (s) on under steering d (rad) and acceleration a
+    (m/s^2), written into z; l_f, l_r (m) its axles' distances from the centre of mass."""
+    x, y, psi, v = z[0], z[1], z[2], z[3]
+    beta = math.atan(l_r / (l_f + l_r) * math.tan(d))
     z[0] = x + dt * v * math.cos(psi + beta)
     z[1] = y + dt * v * math.sin(psi + beta)
     z[2] = psi + dt * v / l_r * math.sin(beta)
     z[3] = v + dt * a
-    return d, a
+
+
+@njit(cache=True)
+def simulate(z0, Delta, alpha, car):
+    """planner.mpc.simulate of one plan: the states Z (4H,) that the controls Delta, alpha (H,) (rad, m/s^2) drive
+    from z0 (4,); car: drive's (its boxes unused: the controls are applied as they are)."""
+    z, Z = z0.copy(), np.empty(4 * len(Delta))
+    for t in range(len(Delta)):
+        advance(z, Delta[t], alpha[t], car[0], car[1], car[2])
+        Z[4 * t:4 * t + 4] = z
+    return Z
 
 
 @njit(cache=True)
@@ -54,97 +73,118 @@ def track(z0, y_target, v_target, x_target, tau, tau_x, car):
 
 
 @njit(cache=True)
-def next_xy(Ws, bs, s, windows):
-    """The predictor's next xy (B, SLOTS, 2) in m of windows (B, T_obs, SLOTS, 2): constant velocity where s is empty,
-    else the student from its float64 weights (jit_rollout.student_params; distill.student.phi_jac64's values), its
-    layers batched over the windows (BLAS)."""
-    B = windows.shape[0]
-    nxt = 2.0 * windows[:, -1] - windows[:, -2]
+def tracks(history, K, H):
+    """K rollouts' tracks (K, T_obs + H, SLOTS, 2) in m: the observed history (T_obs, SLOTS, 2), then room for H
+    predicted steps. A rollout's window at step t is its track's rows t..t + T_obs - 1: nothing is shifted (numba's
+    strided slice copies cost more than the predictor)."""
+    out = np.empty((K, history.shape[0] + H, history.shape[1], 2))
+    for k in range(K):
+        out[k, :history.shape[0]] = history
+    return out
+
+
+@njit(cache=True)
+def alike(rep, track, row):
+    """Refine rep (K,), each track's first track whose ego has driven the same path so far, by the ego's xy (m) just
+    written into row `row` of the tracks (K, T_obs + H, SLOTS, 2): the tracks of one path have the same windows, so the
+    predictor runs once for them (open-loop plans share the lean's prefix, chasing ones drive alike until one enters)."""
+    old = rep.copy()
+    for b in range(len(rep)):
+        for c in range(old[b], b + 1):  # the first of b's old class with b's new xy: itself at the latest
+            if old[c] == old[b] and track[c, row, 0, 0] == track[b, row, 0, 0] and track[c, row, 0, 1] == track[b, row, 0, 1]:
+                rep[b] = c
+                break
+
+
+@njit(cache=True)
+def predict_step(Ws, bs, s, track, new, T_obs, rep):
+    """Write the predictor's next xy (m) of every other car into row `new` of each track (K, T_obs + H, SLOTS, 2), from
+    the window of the T_obs rows before it: constant velocity where s is empty, else the student from its float64
+    weights (jit_rollout.student_params; distill.student.phi_jac64's values), its layers batched (BLAS) over the
+    distinct windows, those of the tracks that are their own rep (alike)."""
+    K, M = track.shape[0], track.shape[2]
+    for b in range(K):
+        for m in range(1, M):
+            for c in range(2):
+                track[b, new, m, c] = 2.0 * track[b, new - 1, m, c] - track[b, new - 2, m, c]
     if len(s) == 0:
-        return nxt
-    h = windows.reshape(B, -1)
+        return
+    own = np.flatnonzero(rep == np.arange(K))
+    h = np.empty((len(own), T_obs * M * 2))
+    for j, b in enumerate(own):
+        for i in range(T_obs):
+            for m in range(M):
+                for c in range(2):
+                    h[j, (i * M + m) * 2 + c] = track[b, new - T_obs + i, m, c]
     for k in range(len(Ws) - 1):
         a = h @ Ws[k].T + bs[k]
         h = np.empty_like(a)
         for i in range(a.shape[0]):
             for j in range(a.shape[1]):
                 h[i, j] = a[i, j] * (0.5 * (1.0 + math.erf(a[i, j] / math.sqrt(2.0))))  # exact GELU
-    t = np.tanh(h @ Ws[-1].T + bs[-1])
-    for b in range(B):
+    head = np.tanh(h @ Ws[-1].T + bs[-1])
+    row = np.empty(K, np.int64)
+    row[own] = np.arange(len(own))
+    for b in range(K):
         for r in range(len(s)):
-            nxt[b, 1 + r // 2, r % 2] += s[r] * t[b, r]
-    return nxt
-
-
-@njit(cache=True)
-def repeat(a, K):
-    """K copies of the array a stacked on a new first axis."""
-    out = np.empty((K,) + a.shape)
-    for k in range(K):
-        out[k] = a
-    return out
-
-
-@njit(cache=True)
-def shift(windows, nxt):
-    """Move every window (B, T_obs, SLOTS, 2) on by one step, in place: the oldest dropped, nxt (B, SLOTS, 2) appended."""
-    for t in range(windows.shape[1] - 1):
-        windows[:, t] = windows[:, t + 1]
-    windows[:, -1] = nxt
+            track[b, new, 1 + r // 2, r % 2] += s[r] * head[row[rep[b]], r]
 
 
 @njit(cache=True)
 def open_loop(Ws, bs, s, history, ego):
     """Predicted xy (K, H, SLOTS, 2) in m of every slot under K fixed ego plans, the ego's xy (K, H, 2) at steps 1..H,
-    from the observed history (T_obs, SLOTS, 2): core.rollout.rollout by next_xy's predictor."""
-    K, H = ego.shape[0], ego.shape[1]
-    windows, values = repeat(history, K), np.empty((K, H, history.shape[1], 2))
+    from the observed history (T_obs, SLOTS, 2): core.rollout.rollout by predict_step's predictor."""
+    K, H, T_obs = ego.shape[0], ego.shape[1], history.shape[0]
+    track, rep = tracks(history, K, H), np.zeros(K, np.int64)  # every window the history at first
     for t in range(H):
-        nxt = next_xy(Ws, bs, s, windows)
-        nxt[:, 0] = ego[:, t]
-        values[:, t] = nxt
-        shift(windows, nxt)
-    return values
+        predict_step(Ws, bs, s, track, T_obs + t, T_obs, rep)
+        for b in range(K):
+            track[b, T_obs + t, 0, 0], track[b, T_obs + t, 0, 1] = ego[b, t, 0], ego[b, t, 1]
+        if len(s):  # constant velocity costs less than finding the alike windows
+            alike(rep, track, T_obs + t)
+    return track[:, T_obs:].copy()
 
 
 @njit(cache=True)
-def target_lane(windows, dt, lane_width, lanes, target):
-    """strategy.target_lane of windows (K, T_obs, SLOTS, 2): x (K, SLOTS) m, v (K, SLOTS) m/s at the last step, and
-    whether each car is in lane `target` (of `lanes`, lane_width m wide; the ego's slot False)."""
-    x, y = windows[:, -1, :, 0].copy(), windows[:, -1, :, 1]
-    v = (x - windows[:, -2, :, 0]) / dt
-    there = np.zeros(x.shape, np.bool_)
-    for b in range(x.shape[0]):
-        for i in range(1, x.shape[1]):
-            there[b, i] = min(max(np.rint(y[b, i] / lane_width), 0.0), lanes - 1.0) == target
+def target_lane(track, new, dt, lane_width, lanes, target):
+    """strategy.target_lane of the windows that end before row `new` of the tracks (K, T_obs + H, SLOTS, 2): x (K,
+    SLOTS) m, v (K, SLOTS) m/s at their last step, and whether each car is in lane `target` (of `lanes`, lane_width m
+    wide; the ego's slot False)."""
+    K, M = track.shape[0], track.shape[2]
+    x, v, there = np.empty((K, M)), np.empty((K, M)), np.zeros((K, M), np.bool_)
+    for b in range(K):
+        for i in range(M):
+            x[b, i] = track[b, new - 1, i, 0]
+            v[b, i] = (x[b, i] - track[b, new - 2, i, 0]) / dt
+            lane = min(max(np.rint(track[b, new - 1, i, 1] / lane_width), 0.0), lanes - 1.0)
+            there[b, i] = i > 0 and lane == target
     return x, v, there
 
 
 @njit(cache=True)
 def chase(Ws, bs, s, history, z, gaps, dv, lean_y, clearance, T, chase_constants, lane, car, follow):
-    """strategy.Chase's K candidates driven T steps against next_xy's predictor from the observed history (T_obs,
+    """strategy.Chase's K candidates driven T steps against predict_step's predictor from the observed history (T_obs,
     SLOTS, 2), as Source.react(history, Chase(...), T, K) drives them: Delta, alpha (K, T), Z (K, 4T) and the predicted
     xy (K, T, SLOTS, 2). z (K, 4): the egos' states (not modified); gaps (K, 2), dv, lean_y, clearance (K,) and
     chase_constants: Chase's own (jit_chase.chase_step's scalars after k); lane = (dt s, lane_width m, lanes, the
     target lane); car: drive's; follow: the IDM parameters (v0, T, s0, a_max, b, delta) of the ego's car-following
     once in the target lane (Chase.FOLLOW)."""
-    K = len(gaps)
-    windows, z = repeat(history, K), z.copy()
+    K, T_obs = len(gaps), history.shape[0]
+    track, z, rep = tracks(history, K, T), z.copy(), np.zeros(K, np.int64)
     Delta, alpha, Z = np.empty((K, T)), np.empty((K, T)), np.empty((K, 4 * T))
-    values = np.empty((K, T, history.shape[1], 2))
     for k in range(T):
-        x, v, there = target_lane(windows, *lane)
+        x, v, there = target_lane(track, T_obs + k, *lane)
         a, y_t, following, gap, v_lead, cap = chase_step(x, v, there, z, gaps, dv, lean_y, clearance, k, *chase_constants)
         for b in range(K):
             if following[b]:
                 a[b] = min(idm(z[b, 3], gap[b], v_lead[b], *follow), cap[b])
             Delta[b, k], alpha[b, k] = drive(z[b], y_t[b], a[b], car)
             Z[b, 4 * k:4 * k + 4] = z[b]
-        nxt = next_xy(Ws, bs, s, windows)
-        nxt[:, 0] = z[:, :2]
-        values[:, k] = nxt
-        shift(windows, nxt)
-    return Delta, alpha, Z, values
+            track[b, T_obs + k, 0, 0], track[b, T_obs + k, 0, 1] = z[b, 0], z[b, 1]
+        predict_step(Ws, bs, s, track, T_obs + k, T_obs, rep)
+        if len(s):
+            alike(rep, track, T_obs + k)
+    return Delta, alpha, Z, track[:, T_obs:].copy()
 
 
 @njit(cache=True)
@@ -160,19 +200,32 @@ def quadratic(P, q, r, x):
 
 
 @njit(cache=True)
+def power(x, q):
+    """x^q for x >= 0: by multiplication for a small whole q (the superellipse's p / 2 = 3), as pow to an ulp or two at
+    a twentieth of its cost (pow was most of a verdict's time), else by pow."""
+    n = int(q)
+    if n != q or not 0 < n <= 4:
+        return x**q
+    out = x
+    for _ in range(n - 1):
+        out *= x
+    return out
+
+
+@njit(cache=True)
 def b_min(values, R, stretch, p):
     """The least b_i (m^2) over every step and car of a rollout's values (H, SLOTS, 2): core.rollout.b_i's shape (R m,
-    stretch, p), inf without cars."""
-    out = np.inf
+    stretch, p), inf without cars. On the superellipse b_i = R^2 S^(2/p) - R^2 rises with S, so it is taken at the
+    least S: one pow per rollout, not per car and step."""
+    least = np.inf
     for t in range(values.shape[0]):
         for i in range(1, values.shape[1]):
             sq0, sq1 = (values[t, 0, 0] - values[t, i, 0]) ** 2, (values[t, 0, 1] - values[t, i, 1]) ** 2
             if p == 2.0:
-                b = sq0 / stretch**2 + sq1 - R**2
+                least = min(least, sq0 / stretch**2 + sq1 - R**2)
             else:
-                b = R**2 * ((sq0 / (stretch * R) ** 2) ** (p / 2) + (sq1 / R**2) ** (p / 2)) ** (2 / p) - R**2
-            out = min(out, b)
-    return out
+                least = min(least, power(sq0 / (stretch * R) ** 2, p / 2) + power(sq1 / R**2, p / 2))
+    return least if p == 2.0 or least == np.inf else R**2 * least ** (2 / p) - R**2
 
 
 @njit(cache=True)

@@ -20,7 +20,7 @@ from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
 from planner import admm, jit_chase, jit_interactive, jit_rollout
-from planner.mpc import Observation, Settings, costs, lane_plans, planned, simulate, start_point, warm_start
+from planner.mpc import Observation, Settings, costs, lane_plans, planned, simulate, warm_start
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
@@ -368,8 +368,8 @@ class Interactive:
 
     def plans(self, s: Settings, obs: Observation, warm, compiled: bool = False):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every open-loop candidate over the
-        horizon H; compiled: their bicycle rollouts by jit_interactive.track (track's numbers, to rounding), as for the
-        sources the compiled core runs."""
+        horizon H; compiled: their bicycle rollouts by jit_interactive's track and simulate (the numbers to rounding),
+        as for the sources the compiled core runs."""
         H, y0 = max(self.horizon, s.T_p), obs.z0[1]
         lane_y = s.road.centre(s.road.lane_of(y0))
         towards = np.sign(s.y_ref - lane_y)
@@ -386,10 +386,10 @@ class Interactive:
                            if compiled else track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x))
         aims = [(y[s.T_p - 1], z[4 * s.T_p - 1]) for y, z in zip(y_t, Z)]  # its lateral target, the speed it reaches
         if warm is not None:  # the shifted previous plan, its last control held beyond it
-            prev = start_point(s, obs, warm)[0]
+            prev = warm_start(s, obs, warm)
             hold = lambda u: np.concatenate([u, np.full(H - s.T_p, u[-1])])
             d, a = hold(prev.Delta), hold(prev.alpha)
-            z = simulate(obs.z0, d, a, s.params)
+            z = jit_interactive.simulate(np.asarray(obs.z0, float), d, a, car(s)) if compiled else simulate(obs.z0, d, a, s.params)
             names, aims = [*names, "shifted"], [*aims, (z[4 * s.T_p - 3], z[4 * s.T_p - 1])]
             Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
         return names, Delta, alpha, Z, aims
