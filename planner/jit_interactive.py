@@ -15,6 +15,7 @@ from numba import njit
 
 from data.drivers import idm
 from planner.jit_chase import chase_step
+from planner.jit_linalg import rmatvec
 
 
 @njit(cache=True)
@@ -97,11 +98,10 @@ def alike(rep, track, row):
 
 
 @njit(cache=True)
-def predict_step(Ws, bs, s, track, new, T_obs, rep):
+def predict_step(Wt, bs, s, track, new, T_obs, rep):
     """Write the predictor's next xy (m) of every other car into row `new` of each track (K, T_obs + H, SLOTS, 2), from
     the window of the T_obs rows before it: constant velocity where s is empty, else the student from its float64
-    weights (jit_rollout.student_params; distill.student.phi_jac64's values), its layers batched (BLAS) over the
-    distinct windows, those of the tracks that are their own rep (alike)."""
+    weights (student_head: Wt, bs) once per distinct window, those of the tracks that are their own rep (alike)."""
     K, M = track.shape[0], track.shape[2]
     for b in range(K):
         for m in range(1, M):
@@ -109,25 +109,34 @@ def predict_step(Ws, bs, s, track, new, T_obs, rep):
                 track[b, new, m, c] = 2.0 * track[b, new - 1, m, c] - track[b, new - 2, m, c]
     if len(s) == 0:
         return
-    own = np.flatnonzero(rep == np.arange(K))
-    h = np.empty((len(own), T_obs * M * 2))
-    for j, b in enumerate(own):
-        for i in range(T_obs):
-            for m in range(M):
-                for c in range(2):
-                    h[j, (i * M + m) * 2 + c] = track[b, new - T_obs + i, m, c]
-    for k in range(len(Ws) - 1):
-        a = h @ Ws[k].T + bs[k]
-        h = np.empty_like(a)
-        for i in range(a.shape[0]):
-            for j in range(a.shape[1]):
-                h[i, j] = a[i, j] * (0.5 * (1.0 + math.erf(a[i, j] / math.sqrt(2.0))))  # exact GELU
-    head = np.tanh(h @ Ws[-1].T + bs[-1])
-    row = np.empty(K, np.int64)
-    row[own] = np.arange(len(own))
+    head = np.empty((K, len(s)))
+    for b in range(K):
+        if rep[b] == b:
+            head[b] = student_head(Wt, bs, track[b, new - T_obs:new].copy().reshape(-1))
     for b in range(K):
         for r in range(len(s)):
-            track[b, new, 1 + r // 2, r % 2] += s[r] * head[row[rep[b]], r]
+            track[b, new, 1 + r // 2, r % 2] += s[r] * head[rep[b], r]
+
+
+@njit(cache=True)
+def transposed(Ws):
+    """The layers' weights W' (in, out), contiguous: student_head's products then run along their rows."""
+    return [np.ascontiguousarray(W.T) for W in Ws]
+
+
+@njit(cache=True)
+def student_head(Wt, bs, window):
+    """The student's bounded head tanh(W_L h) (2N,) of one flattened window (T_obs SLOTS 2,) in m, its values only
+    (distill.student.phi_jac64), from its layers' transposed weights Wt (transposed) and biases bs: a window at a time,
+    so its numbers never depend on which others are predicted beside it (BLAS's do on the batch's size), and two
+    candidates that tie stay tied."""
+    h = window
+    for k in range(len(Wt) - 1):
+        a = rmatvec(Wt[k], h) + bs[k]
+        for j in range(len(a)):
+            a[j] = a[j] * (0.5 * (1.0 + math.erf(a[j] / math.sqrt(2.0))))  # exact GELU
+        h = a
+    return np.tanh(rmatvec(Wt[-1], h) + bs[-1])
 
 
 @njit(cache=True)
@@ -135,9 +144,9 @@ def open_loop(Ws, bs, s, history, ego):
     """Predicted xy (K, H, SLOTS, 2) in m of every slot under K fixed ego plans, the ego's xy (K, H, 2) at steps 1..H,
     from the observed history (T_obs, SLOTS, 2): core.rollout.rollout by predict_step's predictor."""
     K, H, T_obs = ego.shape[0], ego.shape[1], history.shape[0]
-    track, rep = tracks(history, K, H), np.zeros(K, np.int64)  # every window the history at first
+    track, rep, Wt = tracks(history, K, H), np.zeros(K, np.int64), transposed(Ws)  # every window the history at first
     for t in range(H):
-        predict_step(Ws, bs, s, track, T_obs + t, T_obs, rep)
+        predict_step(Wt, bs, s, track, T_obs + t, T_obs, rep)
         for b in range(K):
             track[b, T_obs + t, 0, 0], track[b, T_obs + t, 0, 1] = ego[b, t, 0], ego[b, t, 1]
         if len(s):  # constant velocity costs less than finding the alike windows
@@ -170,7 +179,7 @@ def chase(Ws, bs, s, history, z, gaps, dv, lean_y, clearance, T, chase_constants
     target lane); car: drive's; follow: the IDM parameters (v0, T, s0, a_max, b, delta) of the ego's car-following
     once in the target lane (Chase.FOLLOW)."""
     K, T_obs = len(gaps), history.shape[0]
-    track, z, rep = tracks(history, K, T), z.copy(), np.zeros(K, np.int64)
+    track, z, rep, Wt = tracks(history, K, T), z.copy(), np.zeros(K, np.int64), transposed(Ws)
     Delta, alpha, Z = np.empty((K, T)), np.empty((K, T)), np.empty((K, 4 * T))
     for k in range(T):
         x, v, there = target_lane(track, T_obs + k, *lane)
@@ -181,7 +190,7 @@ def chase(Ws, bs, s, history, z, gaps, dv, lean_y, clearance, T, chase_constants
             Delta[b, k], alpha[b, k] = drive(z[b], y_t[b], a[b], car)
             Z[b, 4 * k:4 * k + 4] = z[b]
             track[b, T_obs + k, 0, 0], track[b, T_obs + k, 0, 1] = z[b, 0], z[b, 1]
-        predict_step(Ws, bs, s, track, T_obs + k, T_obs, rep)
+        predict_step(Wt, bs, s, track, T_obs + k, T_obs, rep)
         if len(s):
             alike(rep, track, T_obs + k)
     return Delta, alpha, Z, track[:, T_obs:].copy()
