@@ -13,8 +13,9 @@ from planner.qp import SolverFailure
 
 
 def offered(s: Settings, obs: Observation, source, plan: admm.ADMMState):
-    """A strategy's plan as it is, through the safeguard's check: (StepResult, "") or (None, why it failed)."""
-    values = safeguard.rollout(s, obs, source, plan.Delta, plan.alpha)[1]
+    """A strategy's plan as it is, through the safeguard's check: (StepResult, "") or (None, why it failed). Its Z is
+    taken as its controls' nonlinear rollout (a strategy offers planned plans: mpc.planned), not simulated again."""
+    values = safeguard.rollout(s, obs, source, plan.Delta, plan.alpha, plan.Z)[1]
     b_min = safeguard.checked_b(s, values)
     if not safeguard.acceptable(s, obs, source, b_min):
         return None, f"unsafe plan (min b_i {b_min:.2f} m^2)"
