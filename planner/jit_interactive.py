@@ -1,13 +1,15 @@
 """mpc=interactive's candidate search (planner.strategy.Interactive) compiled for the predictors the compiled core runs
-itself (cv and the student: planner.jit_rollout.compiled_params): the open-loop candidates' bicycle rollouts (`track`),
-every candidate's predicted rollout with its plan fixed (`open_loop`) or answering the predictor step by step (`chase`:
-strategy.Chase against the predictor's recursion), and the verdicts on them (`verdicts`), each one numba call. In Python
-these were ~2,000 numpy calls on arrays of tens of elements a step, most of the interactive step's time.
+itself (cv and the student: planner.jit_rollout.compiled_params): the open-loop candidates' bicycle rollouts (`track`,
+`simulate`), every candidate's predicted rollout with its plan fixed (`open_loop`) or answering the predictor step by
+step (`chase`: strategy.Chase against the predictor's recursion), and the verdicts on them (`verdicts`), each one numba
+call. In Python these were ~2,000 numpy calls on arrays of tens of elements a step, most of the interactive step's time.
+The student runs once per distinct window (`alike`): the candidates share most of theirs.
 
 planner.strategy's numpy code stays the reference and serves every other source. The arithmetic is the same, in the same
 order, but numba's libm arctan, tan, tanh, pow and erf differ from numpy's SIMD loops and scipy's erf in the last bit
-for some arguments, and the costs J and the student's layers sum in another order: the numbers agree to ~1e-15
-relative, not bit for bit (tests/test_interactive.py)."""
+for some arguments, and the costs J and the student's layers sum in another order: the numbers agree to rounding
+(plans to 1e-15, the student's 25- and 50-step rollouts to 1e-11 m on the bench's states), not bit for bit; the
+candidates' names and order are the reference's (tests/test_interactive.py)."""
 import math
 
 import numpy as np
