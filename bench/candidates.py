@@ -65,11 +65,11 @@ def candidate_paths(cfg, oracle, world, seen, u_prev) -> list:
     with cfg.closed, the closed-loop ones as they drive against the world itself."""
     _, _, source, s = oracle
     obs = mpc.Observation(world.states()[0], u_prev, seen.history)
-    _, Delta, _, Z, _ = s.strategy.plans(s, obs, None)
+    _, Delta, _, Z = s.strategy.plans(s, obs, None)
     paths = list(Z.reshape(*Delta.shape, 4)[:, :, :2])
     if cfg.closed:
         source.predictor.world, source.predictor.ids = world, seen.ids
-        _, c_Delta, _, c_Z, _, _ = s.strategy.chased(s, obs, source)
+        _, c_Delta, _, c_Z, _ = s.strategy.chased(s, obs, source)
         paths += list(c_Z.reshape(*c_Delta.shape, 4)[:, :, :2])
     return paths
 

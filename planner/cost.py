@@ -58,8 +58,10 @@ def Phi_2(T_p, w: Weights, a_prev):
 
 @lru_cache(maxsize=64)  # the same every MPC step of a run; callers never modify P or q in place
 def Phi_3(T_p, w: Weights, y_ref, v_ref):
-    """Lateral deviation from y_ref (m) and speed error from v_ref (m/s) over z(1..T_p); Z stacks [x, y, psi, v]."""
+    """Lateral deviation from y_ref (m) and speed error from v_ref (m/s) over z(1..T_p), each reference one number or a
+    path of T_p (a tuple: hashable for the cache); Z stacks [x, y, psi, v]."""
     S_y, S_v = np.eye(4 * T_p)[1::4], np.eye(4 * T_p)[3::4]  # pick y(tau), v(tau) out of Z
     P = 2.0 * (w.lambda_div * S_y.T @ S_y + w.lambda_v * S_v.T @ S_v)
-    q = -2.0 * (w.lambda_div * y_ref * S_y.T @ np.ones(T_p) + w.lambda_v * v_ref * S_v.T @ np.ones(T_p))
-    return Quadratic(P, q, T_p * (w.lambda_div * y_ref**2 + w.lambda_v * v_ref**2))
+    y, v = (np.broadcast_to(np.asarray(ref, dtype=float), T_p) for ref in (y_ref, v_ref))
+    q = -2.0 * (w.lambda_div * S_y.T @ y + w.lambda_v * S_v.T @ v)
+    return Quadratic(P, q, float(w.lambda_div * y @ y + w.lambda_v * v @ v))

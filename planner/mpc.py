@@ -62,8 +62,8 @@ class Settings:
 
     name: str  # the conf/mpc/ option (MLflow param `mpc`): paper | courteous | ...
     weights: cost.Weights
-    y_ref: float  # m
-    v_ref: float  # m/s
+    y_ref: float  # m: the target lane's centre; a refined candidate's aim may be its own path instead, a tuple of T_p (Phi_3)
+    v_ref: float  # m/s; likewise
     road: Road
     params: bicycle.BicycleParams
     T_p: int = rule(Int(1))  # prediction horizon (steps of dt)

@@ -367,7 +367,7 @@ class Interactive:
         return max(self.horizon, self.chase_horizon, s.T_p) + 1
 
     def plans(self, s: Settings, obs: Observation, warm, compiled: bool = False):
-        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims [(y m, v m/s)]) of every open-loop candidate over the
+        """(names, Delta (K, H), alpha (K, H), Z (K, 4H)) of every open-loop candidate over the
         horizon H; compiled: their bicycle rollouts by jit_interactive's track and simulate (the numbers to rounding),
         as for the sources the compiled core runs."""
         H, y0 = max(self.horizon, s.T_p), obs.z0[1]
@@ -384,18 +384,17 @@ class Interactive:
         v_t = np.where((y_t == s.y_ref) & np.isnan(x_t), entering_speed(s, obs.history), v_t)  # in the lane: its leader's pace
         Delta, alpha, Z = (jit_interactive.track(np.asarray(obs.z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s))
                            if compiled else track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x))
-        aims = [(y[s.T_p - 1], z[4 * s.T_p - 1]) for y, z in zip(y_t, Z)]  # its lateral target, the speed it reaches
         if warm is not None:  # the shifted previous plan, its last control held beyond it
             prev = warm_start(s, obs, warm)
             hold = lambda u: np.concatenate([u, np.full(H - s.T_p, u[-1])])
             d, a = hold(prev.Delta), hold(prev.alpha)
             z = jit_interactive.simulate(np.asarray(obs.z0, float), d, a, car(s)) if compiled else simulate(obs.z0, d, a, s.params)
-            names, aims = [*names, "shifted"], [*aims, (z[4 * s.T_p - 3], z[4 * s.T_p - 1])]
+            names = [*names, "shifted"]
             Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
-        return names, Delta, alpha, Z, aims
+        return names, Delta, alpha, Z
 
     def chased(self, s: Settings, obs: Observation, source):
-        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), aims, values (K, H, SLOTS, 2)) of the closed-loop candidates
+        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), values (K, H, SLOTS, 2)) of the closed-loop candidates
         (Chase), each driven against the predictor's rollout in one batched recursion; for a source the compiled core
         runs, in one compiled call (Chase.compiled)."""
         H, lane_y = max(self.chase_horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
@@ -405,7 +404,7 @@ class Interactive:
         combos += [(f"accept the gap beside at the stream {dv:+.1f} m/s", 0, 0, y, c, dv) for dv in self.accept_dv
                    for y in lean_y for c in self.clearance]
         if not combos or s.road.lane_of(obs.z0[1]) == s.road.lane_of(s.y_ref):
-            return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), [], np.empty((0, H, *np.shape(obs.history)[1:]))
+            return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), np.empty((0, H, *np.shape(obs.history)[1:]))
         _, front, back, lean, clear, dv = zip(*combos)
         policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, self.tau, self.tau_x,
                        self.align, unseen(s, obs.history), dv)
@@ -416,8 +415,7 @@ class Interactive:
         else:
             Delta, alpha, Z, values = policy.compiled(params, obs.history, H)
         names = [f"{what}, lean to {y:.2f} m, enter at {c} m" for what, _, _, y, c, _ in combos]
-        aims = [(z[4 * s.T_p - 3], z[4 * s.T_p - 1]) for z in Z]  # where it is, how fast, at T_p
-        return names, Delta, alpha, Z, aims, values
+        return names, Delta, alpha, Z, values
 
     @staticmethod
     def predict(obs: Observation, source, Z):
@@ -475,30 +473,32 @@ class Interactive:
 
     def ranked(self, s: Settings, obs: Observation, warm, source):
         """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, T_p), alpha (K, T_p),
-        Z (K, 4T_p), aims [(y m, v m/s)], verdicts), each in that order."""
-        names, Delta, alpha, Z, aims = self.plans(s, obs, warm, source.compiled)
+        Z (K, 4T_p), verdicts), each in that order."""
+        names, Delta, alpha, Z = self.plans(s, obs, warm, source.compiled)
         judged = self.judge(s, obs, source, Delta, alpha, Z)
-        c_names, c_Delta, c_alpha, c_Z, c_aims, c_values = self.chased(s, obs, source)
+        c_names, c_Delta, c_alpha, c_Z, c_values = self.chased(s, obs, source)
         judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z, source.compiled)
         for other in source.judges:  # each closed-loop candidate as driven against the source, its path then held fixed
             worse = self.judge(s, obs, other, Delta, alpha, Z)
             worse += self.judge(s, obs, other, c_Delta, c_alpha, c_Z) if len(c_Z) else []
             judged = [j._replace(b_min=min(j.b_min, w.b_min), braking=max(j.braking, w.braking)) for j, w in zip(judged, worse)]
-        names, aims, T = [*names, *c_names], [*aims, *c_aims], s.T_p  # the families' horizons differ; the MPC's is shared
+        names, T = [*names, *c_names], s.T_p  # the families' horizons differ; the MPC's is shared
         Delta, alpha = np.vstack([Delta[:, :T], c_Delta[:, :T]]), np.vstack([alpha[:, :T], c_alpha[:, :T]])
         Z = np.vstack([Z[:, :4 * T], c_Z[:, :4 * T]])
         k = self.order(s, judged)
-        return [names[i] for i in k], Delta[k], alpha[k], Z[k], [aims[i] for i in k], [judged[i] for i in k]
+        return [names[i] for i in k], Delta[k], alpha[k], Z[k], [judged[i] for i in k]
 
     def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
-        """The best `refine` candidates of both families (ranked), each as ADMM's start towards its aim (the lateral
-        target and speed it holds at T_p) and as it is (aim None: the safeguard's check only)."""
-        names, Delta, alpha, Z, aims, _ = self.ranked(s, obs, warm, source)
+        """The best `refine` candidates of both families (ranked), each as ADMM's start aimed at its own path (its y
+        and v at every step of T_p: the refined plan keeps to what the predictor judged, where an aim at its end state
+        would let ADMM cut across to it, along the safety shape's edge) and as it is (aim None: the safeguard's check
+        only)."""
+        names, Delta, alpha, Z, _ = self.ranked(s, obs, warm, source)
         out = []
         for rank in range(min(self.refine, len(names))):
             plan = planned(s, obs.z0, Delta[rank], alpha[rank], Z[rank])
-            y, v = aims[rank]
-            out += [Start(names[rank], plan, replace(s, y_ref=float(y), v_ref=float(v)), rank),
+            path = Z[rank].reshape(s.T_p, 4)
+            out += [Start(names[rank], plan, replace(s, y_ref=tuple(path[:, 1]), v_ref=tuple(path[:, 3])), rank),
                     Start(f"{names[rank]} as planned", plan, None, rank + 0.5)]
         return out
 

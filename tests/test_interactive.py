@@ -1,14 +1,17 @@
 """mpc=interactive: its candidates and choice judged by the predictor alone, on hand-built predictions of a ego
 leaning in beside two target-lane cars (ahead and behind), and its config."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from hydra.utils import instantiate
 from test_surrogate import smooth_student
 
 from core.jobs import UserError
 from distill.models import StudentPredictor
-from planner import mpc, step
+from planner import cost, mpc, step
 from planner.gradients import ExactLocal, Source
-from planner.setup import make
+from planner.setup import make, planner_config
 from planner.strategy import Chase, Interactive, Judged, gaps, paces, track, unseen
 
 DT = 0.2
@@ -88,7 +91,7 @@ def test_a_chasing_candidate_enters_once_the_predicted_clearance_opens():
     s, obs = world(6.0, 3.0)
     H = max(s.strategy.chase_horizon, s.T_p)
     for source, merges in ((scripted(), False), (scripted(brake=1.5), True)):
-        names, Delta, alpha, Z, _, values = s.strategy.chased(s, obs, source)
+        names, Delta, alpha, Z, values = s.strategy.chased(s, obs, source)
         judged = s.strategy.verdicts(s, obs, values, Delta, alpha, Z)
         beside = [k for k, n in enumerate(names) if n.startswith("chase gap -3..+6 m")]
         assert len(beside) == len(s.strategy.clearance)  # one per clearance, all chasing the gap the ego is beside
@@ -123,6 +126,28 @@ def test_a_candidate_counts_only_as_safe_and_courteous_as_the_worst_of_the_sourc
             assert (j.merge, j.J) == (mine.merge, mine.J)
 
 
+def test_phi_3_prices_the_deviation_from_a_path_step_by_step_and_a_number_as_a_constant_path():
+    s = make("dense", ["gradients=cv", "mpc=interactive"])[2]
+    rng = np.random.default_rng(0)
+    Z, y, v = rng.normal(size=4 * s.T_p), tuple(rng.normal(size=s.T_p)), tuple(rng.normal(size=s.T_p))
+    w = s.weights
+    want = w.lambda_div * np.sum((Z[1::4] - y) ** 2) + w.lambda_v * np.sum((Z[3::4] - v) ** 2)
+    assert cost.Phi_3(s.T_p, w, y, v)(Z) == pytest.approx(want)
+    assert cost.Phi_3(s.T_p, w, 4.0, 5.0)(Z) == pytest.approx(cost.Phi_3(s.T_p, w, (4.0,) * s.T_p, (5.0,) * s.T_p)(Z))
+
+
+def test_admm_refines_a_candidate_along_its_own_path_not_across_to_its_end_state():
+    s, obs = world(8.0, 8.0, lane_end=120.0)  # room to merge at once: the best candidate steers in from the first step
+    source, zstep = make("dense", ["gradients=cv"])[1], instantiate(planner_config("dense", ["gradients=cv"]).solver.step).keywords["zstep"]
+    start = s.strategy.candidates(s, obs, None, source)[0]
+    path = start.plan.Z.reshape(s.T_p, 4)
+    assert start.aim.y_ref == tuple(path[:, 1]) and start.aim.v_ref == tuple(path[:, 3])
+    end = replace(s, y_ref=float(path[-1, 1]), v_ref=float(path[-1, 3]))  # aimed at where it ends: cuts across
+    deviation = [np.abs(step.solve(s, aim, obs, source, start.plan, zstep)[0].plan.Z[1::4] - path[:, 1]).max()
+                 for aim in (start.aim, end)]
+    assert deviation[0] < 0.05 < 0.2 < deviation[1]
+
+
 def test_judges_are_other_trainings_of_a_trained_predictor():
     with pytest.raises(UserError, match=r"judges=\['elsewhere'\]: predictor=cv reads no models"):
         make("dense", ["gradients=cv", "mpc=interactive", "judges=[elsewhere]"])
@@ -137,7 +162,7 @@ def test_a_gap_beyond_the_seen_cars_ends_where_an_unseen_car_may_be(front, enter
     along = np.sqrt(22.0**2 + 4.0**2 - (s.y_ref - 0.0) ** 2)  # the farthest seen car's distance, along the target lane
     assert (ahead, behind, v) == pytest.approx((along, -along, 5.0))
     assert [name for name, *_ in gaps(s, obs.history)][-1] == f"+{front:.0f}..unseen m"
-    names, Delta, alpha, Z, _, values = s.strategy.chased(s, obs, scripted())
+    names, Delta, alpha, Z, values = s.strategy.chased(s, obs, scripted())
     H = max(s.strategy.chase_horizon, s.T_p)
     entered = 0
     for k in (k for k, n in enumerate(names) if n.startswith(f"chase gap +{front:.0f}..unseen m")):
@@ -287,7 +312,7 @@ def test_the_compiled_search_ranks_and_judges_its_candidates_as_the_python_refer
     assert compiled[0] == python[0]  # names, best first
     for a, b in zip(compiled[1:4], python[1:4]):
         assert np.allclose(a, b, rtol=0.0, atol=1e-9)
-    judged, expected = np.array(compiled[5], float), np.array(python[5], float)
+    judged, expected = np.array(compiled[4], float), np.array(python[4], float)
     assert np.allclose(judged, expected, rtol=1e-12, atol=1e-9)
     merged = judged[:, 2] < s.strategy.never(s)
     assert 0 < merged.sum() < len(judged) and any(n.startswith(("chase", "accept")) for n in np.array(compiled[0])[merged])
