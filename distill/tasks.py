@@ -52,8 +52,7 @@ class TeacherTask(_Task):
     a braking spread over those steps, whose peak is a fraction of the world's."""
 
     def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, rollout_weight: float,
-                 rollout_scale_m: float, contrast_weight: float, brake_weight: float = 0.0, brake_scale: float = 1.0,
-                 dt: float = 0.2):
+                 rollout_scale_m: float, contrast_weight: float, brake_weight: float, brake_scale: float, dt: float):
         """scale_m, rollout_scale_m: loss units (m) of the one-step and rollout terms; rollout_weight, contrast_weight,
         brake_weight (-); brake_scale: the braking term's unit (m/s^2); dt: the data's step (s)."""
         super().__init__(net, lr, weight_decay)

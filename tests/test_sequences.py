@@ -17,6 +17,7 @@ from distill.tasks import StudentTask, TeacherTask, group_rollout, hardest_braki
 
 NET = {"_target_": "distill.teacher.SocialTeacher", "hidden": 8, "pool": 8, "decoder": [16], "pos_scale": 10.0,
        "vel_scale": 0.5, "acc_scale": 0.05}
+NO_BRAKE = {"brake_weight": 0.0, "brake_scale": 1.0, "dt": 0.2}  # the hardest-braking term off
 
 
 def test_futures_follow_each_run_and_agree_with_the_rollout_cases(tiny_dataset):
@@ -45,7 +46,7 @@ def batch(tiny_dataset, n=16):
 
 def test_rollout_term_sees_only_the_steps_the_run_reached(tiny_dataset):
     torch.manual_seed(0)
-    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=10.0, rollout_scale_m=1.0, contrast_weight=0.0)
+    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=10.0, rollout_scale_m=1.0, contrast_weight=0.0, **NO_BRAKE)
     task.log = lambda *args, **kwargs: None
     X, ego, others, mask = batch(tiny_dataset)
     mask[:, 5:] = False
@@ -74,7 +75,7 @@ def test_hardest_braking_is_each_car_s_largest_deceleration_over_the_steps_reach
 def test_the_braking_term_adds_the_huber_error_of_the_predicted_hardest_braking(tiny_dataset):
     torch.manual_seed(0)
     args = dict(scale_m=0.01, rollout_weight=10.0, rollout_scale_m=1.0, contrast_weight=0.0)
-    plain, braking = TeacherTask(NET, 1e-3, 0.0, **args), TeacherTask(NET, 1e-3, 0.0, **args, brake_weight=2.0, dt=0.2)
+    plain, braking = TeacherTask(NET, 1e-3, 0.0, **args, **NO_BRAKE), TeacherTask(NET, 1e-3, 0.0, **{**args, **NO_BRAKE, "brake_weight": 2.0})
     braking.net.load_state_dict(plain.net.state_dict())
     for task in (plain, braking):
         task.log = lambda *a, **k: None
@@ -87,7 +88,7 @@ def test_the_braking_term_adds_the_huber_error_of_the_predicted_hardest_braking(
 
 def test_without_the_rollout_term_the_loss_is_the_one_step_huber(tiny_dataset):
     torch.manual_seed(0)
-    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=1.0, contrast_weight=0.0)
+    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=1.0, contrast_weight=0.0, **NO_BRAKE)
     task.log = lambda *args, **kwargs: None
     X, ego, others, mask = batch(tiny_dataset)
     err = (task.net(X) - torch.cat([ego[:, :1], others[:, 0]], 1))[:, 1:] / 0.01
@@ -110,7 +111,7 @@ def test_branch_groups_share_their_past_and_differ_in_the_ego_future(tiny_datase
 
 def test_contrast_term_scores_the_predicted_difference_between_branches(tiny_dataset):
     torch.manual_seed(0)
-    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=0.5, contrast_weight=1.0)
+    task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=0.5, contrast_weight=1.0, **NO_BRAKE)
     a = dataset.load(tiny_dataset, "train")
     g = groups(a)[:6]
     X, ego, others, mask = (torch.from_numpy(np.asarray(t[np.maximum(g, 0)], dtype=np.float32 if t.dtype != bool else bool))
