@@ -148,11 +148,14 @@ def test_admm_refines_a_candidate_along_its_own_path_not_across_to_its_end_state
     assert deviation[0] < 0.05 < 0.2 < deviation[1]
 
 
-def test_judges_are_other_trainings_of_a_trained_predictor():
+def test_judges_are_other_trainings_of_a_trained_predictor(tiny_models):
     with pytest.raises(UserError, match=r"judges=\['elsewhere'\]: predictor=cv reads no models"):
         make("dense", ["gradients=cv", "mpc=interactive", "judges=[elsewhere]"])
+    student = ["gradients=student", "mpc=interactive", f"models_dir={tiny_models[0]}"]
     with pytest.raises(UserError, match=r"judges\[0\]=no_such_folder: .*no_such_folder"):
-        make("dense", ["gradients=student", "mpc=interactive", "judges=[no_such_folder]"])
+        make("dense", [*student, "judges=[no_such_folder]"])
+    source = make("dense", [*student, f"judges=[{tiny_models[0]}]"])[1]
+    assert [j.predictor.name for j in source.judges] == ["student"] and not make("dense", student)[1].judges
 
 
 @pytest.mark.parametrize("front,enters", [(6.0, True), (16.0, False)])
