@@ -24,12 +24,13 @@ from planner.jit_linalg import rmatvec
 def drive(z, y_target, a, car):
     """strategy.drive for one ego in state z (4,) (x, y m, psi rad, v m/s), steering to y_target (m), accelerating at a
     (m/s^2): its controls delta (rad), a (m/s^2), and its next state, written into z; car = (l_f, l_r, dt, psi_lo,
-    psi_hi, delta_lo, delta_hi, a_lo, a_hi): the bicycle's geometry (m), step (s) and the boxes."""
-    l_f, l_r, dt, psi_lo, psi_hi, d_lo, d_hi, a_lo, a_hi = car
+    psi_hi, delta_lo, delta_hi, a_lo, a_hi, k_y, k_psi): the bicycle's geometry (m), step (s), the boxes and the lateral
+    and heading gains (1/s)."""
+    l_f, l_r, dt, psi_lo, psi_hi, d_lo, d_hi, a_lo, a_hi, k_y, k_psi = car
     y, psi, v = z[1], z[2], z[3]
     v_1 = max(v, 1.0)  # steering gains as at 1 m/s below it
-    psi_d = min(max(math.atan(0.6 * (y_target - y) / v_1), psi_lo), psi_hi)
-    d = min(max((l_f + l_r) * 2.0 * (psi_d - psi) / v_1, d_lo), d_hi)
+    psi_d = min(max(math.atan(k_y * (y_target - y) / v_1), psi_lo), psi_hi)
+    d = min(max((l_f + l_r) * k_psi * (psi_d - psi) / v_1, d_lo), d_hi)
     a = max(min(max(a, a_lo), a_hi), -v / dt)
     advance(z, d, a, l_f, l_r, dt)
     return d, a

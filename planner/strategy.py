@@ -24,6 +24,7 @@ from planner.mpc import Observation, Settings, costs, lane_plans, planned, simul
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
+K_PSI = 4.0  # 1/s: a candidate's heading loop (drive), faster than any lateral gain k_y it serves: at the world's 2.0 a brisk lean overshot its depth into the safety shape of the car beside
 
 
 class Start(NamedTuple):
@@ -209,26 +210,28 @@ def entering_speed(s: Settings, history) -> float:
     return float(v[ahead[np.argmin(x[ahead])]] if len(ahead) else v[target].mean() if len(target) else v[0])
 
 
-def drive(s: Settings, z, y_target, a):
+def drive(s: Settings, z, y_target, a, k_y: float):
     """Controls delta, a (K,) in rad, m/s^2 and next states (K, 4) of K egos in states z (K, 4) that steer to the lateral
-    targets y_target (K,) in m, their heading held within psi_box, accelerating at a (K,) within a_box, never reversing."""
+    targets y_target (K,) in m with lateral gain k_y (1/s) and heading gain K_PSI, their heading held within psi_box,
+    accelerating at a (K,) within a_box, never reversing."""
     p, clip = s.params, lambda u, box: np.minimum(np.maximum(u, box[0]), box[1])  # np.clip's numbers, without its wrapping's microseconds
     v = np.maximum(z[:, 3], 1.0)
-    psi_d = clip(np.arctan(0.6 * (y_target - z[:, 1]) / v), s.psi_box)
-    d = clip((p.l_f + p.l_r) * 2.0 * (psi_d - z[:, 2]) / v, s.delta_box)
+    psi_d = clip(np.arctan(k_y * (y_target - z[:, 1]) / v), s.psi_box)
+    d = clip((p.l_f + p.l_r) * K_PSI * (psi_d - z[:, 2]) / v, s.delta_box)
     a = np.maximum(clip(a, s.a_box), -z[:, 3] / p.dt)
     return d, a, bicycle.step(z, np.array([d, a]).T, p)  # np.stack took 4 us more
 
 
-def car(s: Settings) -> tuple:
-    """jit_interactive.drive's car: (l_f, l_r m, dt s, psi_box rad, delta_box rad, a_box m/s^2), as drive reads s."""
+def car(s: Settings, k_y: float) -> tuple:
+    """jit_interactive.drive's car: (l_f, l_r m, dt s, psi_box rad, delta_box rad, a_box m/s^2, k_y, K_PSI 1/s), as
+    drive reads s and its gains."""
     p = s.params
-    return tuple(float(c) for c in (p.l_f, p.l_r, p.dt, *s.psi_box, *s.delta_box, *s.a_box))
+    return tuple(float(c) for c in (p.l_f, p.l_r, p.dt, *s.psi_box, *s.delta_box, *s.a_box, k_y, K_PSI))
 
 
-def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x: float = 1.0):
+def track(s: Settings, z0, y_target, v_target, tau: float, k_y: float, x_target=None, tau_x: float = 1.0):
     """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
-    (K, H) in m (drive) while their speed approaches v_target (K, H) in m/s with time constant tau (s); where x_target
+    (K, H) in m with lateral gain k_y in 1/s (drive) while their speed approaches v_target (K, H) in m/s with time constant tau (s); where x_target
     (K, H) in m is given (not NaN), the speed aimed at also closes the distance to it with time constant tau_x (s)."""
     K, H = y_target.shape
     x_target = np.full((K, H), np.nan) if x_target is None else x_target
@@ -237,7 +240,7 @@ def track(s: Settings, z0, y_target, v_target, tau: float, x_target=None, tau_x:
     Delta, alpha, Z = [], [], []
     for k in range(H):
         v_aim = np.maximum(0.0, v_target[:, k] + np.where(speed_only[:, k], 0.0, (x_target[:, k] - z[:, 0]) / tau_x))
-        d, a, z = drive(s, z, y_target[:, k], (v_aim - z[:, 3]) / tau)
+        d, a, z = drive(s, z, y_target[:, k], (v_aim - z[:, 3]) / tau, k_y)
         Delta.append(d)
         alpha.append(a)
         Z.append(z)
@@ -262,8 +265,8 @@ class Chase:
     FOLLOW = IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0)  # the ego's own car-following once in the target lane
 
     def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, tau: float,
-                 tau_x: float, align: float, unseen, dv=None):
-        self.s, self.gaps = s, np.asarray(gaps, int).reshape(-1, 2)
+                 tau_x: float, align: float, unseen, k_y: float, dv=None):
+        self.s, self.gaps, self.k_y = s, np.asarray(gaps, int).reshape(-1, 2), k_y
         self.lean_y, self.clearance = np.asarray(lean_y, float), np.asarray(clearance, float)
         self.dv = np.full(len(self.gaps), np.nan) if dv is None else np.asarray(dv, float)
         self.constants = tuple(float(c) for c in (  # jit_chase.chase_step's scalars after k, in its order
@@ -281,7 +284,7 @@ class Chase:
         for b in np.flatnonzero(follow):  # few at a step: IDM by the world's own driver model
             a[b] = min(self.FOLLOW.acceleration(z[b, 3]) if np.isnan(gap[b]) else
                        self.FOLLOW.acceleration(z[b, 3], gap[b], v_lead[b]), cap[b])
-        d, a, self.z = drive(s, z, y_t, a)
+        d, a, self.z = drive(s, z, y_t, a, self.k_y)
         self.Delta.append(d)
         self.alpha.append(a)
         self.Z.append(self.z)
@@ -294,7 +297,7 @@ class Chase:
         s = self.s
         lane = (s.params.dt, s.road.lane_width, float(s.road.lanes), float(s.road.lane_of(s.y_ref)))
         return jit_interactive.chase(*params, np.asarray(history, float), self.z, self.gaps, self.dv, self.lean_y,
-                                     self.clearance, T, self.constants, lane, car(s), self.FOLLOW.following)
+                                     self.clearance, T, self.constants, lane, car(s, self.k_y), self.FOLLOW.following)
 
 
 def unseen(s: Settings, history) -> tuple:
@@ -350,6 +353,7 @@ class Interactive:
     chase_horizon: int = rule(Int(1))  # steps (of dt) over which it judges a closed-loop one; at least T_p
     tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
     tau_x: float = rule(Real(0, lo_open=True))  # s: time constant of a gap-targeting candidate closing on the gap's middle
+    k_y: float = rule(Real(0, lo_open=True))  # 1/s: a candidate's lateral gain (drive): how briskly it leans and crosses, within psi_box
     stream_dv: tuple = rule(ListOf(Real(), at_least=1))  # m/s: the speeds relative to the stream's mean a candidate may hold
     chase_lean: tuple = rule(ListOf(Real(0)))  # m: how far a gap-chasing candidate leans to ask for room; []: no such candidates
     clearance: tuple = rule(ListOf(Real(0), at_least=1))  # m: predicted bumper clearance to both gap cars at which a chasing candidate enters
@@ -382,16 +386,32 @@ class Interactive:
         x_t = np.array([x for _ in lateral for _, x in pace.values()])
         v_t = np.array([v for _ in lateral for v, _ in pace.values()])
         v_t = np.where((y_t == s.y_ref) & np.isnan(x_t), entering_speed(s, obs.history), v_t)  # in the lane: its leader's pace
-        Delta, alpha, Z = (jit_interactive.track(np.asarray(obs.z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s))
-                           if compiled else track(s, obs.z0, y_t, v_t, self.tau, x_t, self.tau_x))
-        if warm is not None:  # the shifted previous plan, its last control held beyond it
-            prev = warm_start(s, obs, warm)
-            hold = lambda u: np.concatenate([u, np.full(H - s.T_p, u[-1])])
-            d, a = hold(prev.Delta), hold(prev.alpha)
-            z = jit_interactive.simulate(np.asarray(obs.z0, float), d, a, car(s)) if compiled else simulate(obs.z0, d, a, s.params)
+        Delta, alpha, Z = (jit_interactive.track(np.asarray(obs.z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s, self.k_y))
+                           if compiled else track(s, obs.z0, y_t, v_t, self.tau, self.k_y, x_t, self.tau_x))
+        if warm is not None:
+            d, a, z = self.shifted(s, obs, warm, H, compiled)
             names = [*names, "shifted"]
             Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
         return names, Delta, alpha, Z
+
+    def shifted(self, s: Settings, obs: Observation, warm, H: int, compiled: bool = False):
+        """Delta, alpha (1, H) and Z (1, 4H) of the shifted previous plan, continued beyond T_p as the open-loop
+        candidates drive: into the target lane at its leader's pace once the plan ends there, else holding its last y
+        and v. So the plan applied last step is judged again whole (a "merge after 3" chosen now is "merge after 2"
+        next step, which no other candidate offers); holding its last controls instead would turn the ego in a circle."""
+        prev = warm_start(s, obs, warm)
+        z0 = np.asarray(obs.z0, float)
+        z_p = jit_interactive.simulate(z0, prev.Delta, prev.alpha, car(s, self.k_y)) if compiled else simulate(z0, prev.Delta, prev.alpha, s.params)
+        if H == s.T_p:
+            return prev.Delta[None], prev.alpha[None], z_p[None]
+        end = z_p[-4:]
+        merged = s.road.lane_of(end[1]) == s.road.lane_of(s.y_ref)
+        y_t = np.full((1, H - s.T_p), s.y_ref if merged else end[1])
+        v_t = np.full((1, H - s.T_p), entering_speed(s, obs.history) if merged else end[3])
+        d, a, z = (jit_interactive.track(end, y_t, v_t, np.full_like(y_t, np.nan), self.tau, self.tau_x, car(s, self.k_y))
+                   if compiled else track(s, end, y_t, v_t, self.tau, self.k_y))
+        return (np.concatenate([prev.Delta, d[0]])[None], np.concatenate([prev.alpha, a[0]])[None],
+                np.concatenate([z_p, z[0]])[None])
 
     def chased(self, s: Settings, obs: Observation, source):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H), values (K, H, SLOTS, 2)) of the closed-loop candidates
@@ -407,7 +427,7 @@ class Interactive:
             return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), np.empty((0, H, *np.shape(obs.history)[1:]))
         _, front, back, lean, clear, dv = zip(*combos)
         policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, self.tau, self.tau_x,
-                       self.align, unseen(s, obs.history), dv)
+                       self.align, unseen(s, obs.history), self.k_y, dv)
         params = jit_rollout.compiled_params(source)
         if params is None:
             values = source.react(obs.history, policy, H, len(combos))
