@@ -84,6 +84,24 @@ def test_a_candidate_leans_to_its_depth_briskly_and_never_past_it():
     assert y.max() <= s.y_ref + 1e-3 and np.argmax(np.abs(y - s.y_ref) <= s.strategy.merge_tol) + 1 <= 4
 
 
+def test_the_shifted_plan_goes_on_beyond_t_p_as_the_candidates_drive():
+    """The plan applied last step is a candidate again, rolled out over the whole horizon: one that ends in the target
+    lane settles on its centre, one that ends leaning holds its lean; holding the last steering angle instead turned the
+    ego in a circle."""
+    s, obs = world(8.0, 8.0, lane_end=120.0)
+    history = obs.history.copy()
+    history[:, 0, 1] = 1.9
+    obs = obs._replace(z0=np.array([0.0, 1.9, 0.0, 5.0]), history=history)
+    names, Delta, alpha, Z, _ = s.strategy.ranked(s, obs, None, scripted())
+    H = s.strategy.horizon
+    for name, y_end in (("merge after 0, gap -8..+8 m", s.y_ref), ("lean, stream", 1.9)):
+        k = names.index(name)
+        warm = mpc.planned(s, obs.z0, Delta[k], alpha[k], Z[k])
+        _, _, z = s.strategy.shifted(s, obs._replace(z0=Z[k, :4]), warm, H)  # a step on, where the plan took the ego
+        tail = z.reshape(H, 4)[s.T_p:]
+        assert z.shape == (1, 4 * H) and np.abs(tail[-5:, 1] - y_end).max() < 0.05 and np.abs(tail[:, 2]).max() <= 0.25
+
+
 def test_a_gap_targeting_candidate_closes_on_the_gap_s_middle():
     s, obs = world(4.5, 4.5)
     H = 40
