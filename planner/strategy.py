@@ -231,8 +231,9 @@ def car(s: Settings, k_y: float) -> tuple:
 
 def track(s: Settings, z0, y_target, v_target, tau: float, k_y: float, x_target=None, tau_x: float = 1.0):
     """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
-    (K, H) in m with lateral gain k_y in 1/s (drive) while their speed approaches v_target (K, H) in m/s with time constant tau (s); where x_target
-    (K, H) in m is given (not NaN), the speed aimed at also closes the distance to it with time constant tau_x (s)."""
+    (K, H) in m with lateral gain k_y in 1/s (drive) while their speed approaches v_target (K, H) in m/s with time
+    constant tau (s); where x_target (K, H) in m is given (not NaN), the speed aimed at also closes the distance to it
+    with time constant tau_x (s)."""
     K, H = y_target.shape
     x_target = np.full((K, H), np.nan) if x_target is None else x_target
     speed_only = np.isnan(x_target)  # once: np.nan_to_num each step cost more than the rest of the step's maths
