@@ -387,13 +387,19 @@ class Interactive:
         x_t = np.array([x for _ in lateral for _, x in pace.values()])
         v_t = np.array([v for _ in lateral for v, _ in pace.values()])
         v_t = np.where((y_t == s.y_ref) & np.isnan(x_t), entering_speed(s, obs.history), v_t)  # in the lane: its leader's pace
-        Delta, alpha, Z = (jit_interactive.track(np.asarray(obs.z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s, self.k_y))
-                           if compiled else track(s, obs.z0, y_t, v_t, self.tau, self.k_y, x_t, self.tau_x))
+        Delta, alpha, Z = self.track(s, obs.z0, y_t, v_t, x_t, compiled)
         if warm is not None:
             d, a, z = self.shifted(s, obs, warm, H, compiled)
             names = [*names, "shifted"]
             Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
         return names, Delta, alpha, Z
+
+    def track(self, s: Settings, z0, y_t, v_t, x_t, compiled: bool):
+        """strategy.track with this strategy's tau, tau_x and k_y: Delta, alpha (K, H), Z (K, 4H) from z0 (4,) towards
+        y_t, v_t, x_t (K, H) in m, m/s, m; compiled: by jit_interactive.track (the numbers to rounding)."""
+        if compiled:
+            return jit_interactive.track(np.asarray(z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s, self.k_y))
+        return track(s, z0, y_t, v_t, self.tau, self.k_y, x_t, self.tau_x)
 
     def shifted(self, s: Settings, obs: Observation, warm, H: int, compiled: bool = False):
         """Delta, alpha (1, H) and Z (1, 4H) of the shifted previous plan, continued beyond T_p as the open-loop
@@ -409,8 +415,7 @@ class Interactive:
         merged = s.road.lane_of(end[1]) == s.road.lane_of(s.y_ref)
         y_t = np.full((1, H - s.T_p), s.y_ref if merged else end[1])
         v_t = np.full((1, H - s.T_p), entering_speed(s, obs.history) if merged else end[3])
-        d, a, z = (jit_interactive.track(end, y_t, v_t, np.full_like(y_t, np.nan), self.tau, self.tau_x, car(s, self.k_y))
-                   if compiled else track(s, end, y_t, v_t, self.tau, self.k_y))
+        d, a, z = self.track(s, end, y_t, v_t, np.full_like(y_t, np.nan), compiled)
         return (np.concatenate([prev.Delta, d[0]])[None], np.concatenate([prev.alpha, a[0]])[None],
                 np.concatenate([z_p, z[0]])[None])
 
