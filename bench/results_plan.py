@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
 PRESET = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
           "results_preset.cooperation_episodes": validate.Int(1), "results_preset.oracle_episodes": validate.Int(0),
+          "results_preset.oracle_n_slots": validate.ListOf(validate.Int(1)),
           # the oracle reads the running world: the interaction benchmark cannot score it, nor so place it on the figure
           "results_preset.fidelity_sources": validate.ListOf(validate.OneOf(available(needs_world=False))),
           "results_preset.verdicts": validate.OVERRIDES, "results_preset.verdicts_seed": validate.SEED}
@@ -241,7 +242,7 @@ def build_plan(cfg, work: Path):
         [("random", s, p.episodes, [], every) for s in p.sources] + \
         [(sc, s, p.table2_episodes, extra, every) for sc in p.scenarios for extra in options for s in p.table2_sources] + \
         [(swept(c), s, p.cooperation_episodes, extra, first) for c in fresh_levels(p) for extra in options for s in p.sources] + \
-        [("dense", "oracle", p.oracle_episodes, ORACLE, first)] * (p.oracle_episodes > 0)
+        [("dense", "oracle", p.oracle_episodes, extra, first) for extra in oracles(p)]
     # the fidelity figure's rows: the headline's `<source> interactive` where it runs, else a batch of their own on its worlds
     runs += [r for r in (("dense", s, p.dense_episodes, INTERACTIVE, every) for s in p.fidelity_sources) if r not in runs]
     runs += [("dense", v.name, p.dense_episodes, INTERACTIVE, first) for v in fidelity]
@@ -302,9 +303,11 @@ def fresh_levels(p) -> list[str]:
 
 
 def label(source: str, extra: list) -> str:
-    """A batch's row name: the gradient source, with its conf/mpc/ option when not the paper's ("student courteous")."""
+    """A batch's row name: the gradient source, with its conf/mpc/ option when not the paper's ("student courteous") and
+    the cars it sees when not the planner's ("oracle interactive 8 cars")."""
     mpc = [o.split("=", 1)[1] for o in extra if o.startswith("mpc=")]
-    return " ".join([source, *mpc])
+    seen = [f"{o.split('=', 1)[1]} cars" for o in extra if o.startswith("n_slots=")]
+    return " ".join([source, *mpc, *seen])
 
 
 def mpc_overrides(options) -> list[list[str]]:
@@ -319,4 +322,10 @@ def with_options(sources, options) -> list[str]:
 
 def dense_sources(p) -> list[str]:
     """Row names of the preset p's dense batches: with_options's, then the oracle's interactive step where it runs."""
-    return with_options(p.sources, p.mpc_options) + [label("oracle", ORACLE)] * (p.oracle_episodes > 0)
+    return with_options(p.sources, p.mpc_options) + [label("oracle", extra) for extra in oracles(p)]
+
+
+def oracles(p) -> list[list[str]]:
+    """The planner overrides of the preset p's oracle rows: ORACLE with the planner's perception, then seeing each of
+    oracle_n_slots nearest cars (the world as predictor takes any number; the trained models take the dataset's)."""
+    return [ORACLE, *(ORACLE + [f"n_slots={n}"] for n in p.oracle_n_slots)] if p.oracle_episodes > 0 else []

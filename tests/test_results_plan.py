@@ -62,6 +62,16 @@ def test_the_oracle_row_drives_the_interactive_step_with_the_world_as_predictor_
         tiny_plan(tmp_path, "results_preset.oracle_episodes=3")
 
 
+def test_further_oracle_rows_see_more_cars_and_are_starts_of_the_ceiling(tmp_path):
+    _, jobs, batches = tiny_plan(tmp_path, "results_preset.oracle_n_slots=[8]")
+    wide, plain = jobs["planner dense oracle interactive 8 cars"], jobs["planner dense oracle interactive"]
+    assert (wide.n_slots, plain.n_slots, wide.gradients.name, wide.mpc.name) == (8, 4, "oracle", "interactive")
+    assert (wide.episodes, wide.seed) == (plain.episodes, plain.seed)
+    assert str(batches["dense", "oracle interactive 8 cars", None] / "steps" / "admm_{seed}.csv") in jobs["ceiling dense"].starts
+    with pytest.raises(UserError, match=r"results_preset.oracle_n_slots"):
+        tiny_plan(tmp_path, "results_preset.oracle_n_slots=[0]")
+
+
 def test_a_teacher_trained_on_a_fraction_of_the_data_sees_the_first_episodes_windows_alone(tiny_dataset):
     import numpy as np
 
