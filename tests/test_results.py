@@ -149,8 +149,9 @@ def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
     # every planner run was one of the ceiling's starts: none beats it, and the report says how often the search alone sufficed
     steps = sorted((work / "planner" / "dense").glob("*/*/steps/*.csv"))
     assert beat == set() and "planner beat the ceiling on 0 worlds of 2" in md
-    assert [w["starts"] for w in dense] == [sum(f.stem.endswith(f"_{w['seed']:.0f}") for f in steps) for w in dense] == [9, 8]
+    assert [w["starts"] for w in dense] == [sum(f.stem.endswith(f"_{w['seed']:.0f}") for f in steps) for w in dense] == [10, 8]
     assert cell(md, "Dense traffic (headline)", "oracle interactive", "ADMM", 2) == "1 x 1"  # the oracle row: the first world
+    assert cell(md, "Dense traffic (headline)", "oracle interactive 8 cars", "ADMM", 2) == "1 x 1"  # ... seeing 8 cars
     reached = sum(w["search_courteous"] == w["ceiling_courteous"] and w["search_t_merge"] == w["ceiling_t_merge"] for w in dense)
     assert f"already reached the final value on {reached} of the 2 worlds" in md
     for f in steps:  # a run's per-step CSV: a row per step it drove

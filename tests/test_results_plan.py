@@ -63,7 +63,7 @@ def test_the_oracle_row_drives_the_interactive_step_with_the_world_as_predictor_
 
 
 def test_further_oracle_rows_see_more_cars_and_are_starts_of_the_ceiling(tmp_path):
-    _, jobs, batches = tiny_plan(tmp_path, "results_preset.oracle_n_slots=[8]")
+    _, jobs, batches = tiny_plan(tmp_path)
     wide, plain = jobs["planner dense oracle interactive 8 cars"], jobs["planner dense oracle interactive"]
     assert (wide.n_slots, plain.n_slots, wide.gradients.name, wide.mpc.name) == (8, 4, "oracle", "interactive")
     assert (wide.episodes, wide.seed) == (plain.episodes, plain.seed)
