@@ -41,7 +41,7 @@ from omegaconf import DictConfig
 from bench.branches import KINDS, Pair, execute, make_pairs
 from core import validate
 from core.jobs import CONF_DIR, MissingModel, UserError, console, guarded, mlflow_run, open_experiment, writable
-from core.rollout import accelerations
+from core.rollout import braking as hardest_braking
 from core.stats import bootstrap
 from planner.gradients import available
 
@@ -85,10 +85,9 @@ def first_order_response(source, pair: Pair):
 
 
 def braking(xy, history, dt):
-    """The hardest braking (m/s^2, >= 0) of any other car over each rollout xy (..., T_p, SLOTS, 2) that follows the
-    observed history (T_obs, SLOTS, 2), with steps of dt (s)."""
-    a = accelerations(xy, np.broadcast_to(history, xy.shape[:-3] + history.shape), dt)
-    return np.maximum(0.0, -a.min(axis=(-2, -1))).round(6)  # to 1e-6 m/s^2: rounding noise must not rank plans
+    """core.rollout.braking of each rollout xy (..., T_p, SLOTS, 2), each step's, to 1e-6 m/s^2: rounding noise must not
+    rank plans."""
+    return hardest_braking(xy, history, dt).round(6)
 
 
 def reference_response(pair: Pair, draws: int, rng: np.random.Generator):

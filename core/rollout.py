@@ -126,6 +126,13 @@ def accelerations(values, history, dt):
     return np.swapaxes((x[..., 2:, :] - 2.0 * x[..., 1:-1, :] + x[..., :-2, :]) / dt**2, -1, -2)
 
 
+def braking(values, history, dt):
+    """The hardest braking (m/s^2, >= 0) of another car over each rollout values (..., T_p, SLOTS, 2) that follows the
+    observed history (T_obs, SLOTS, 2) or (..., T_obs, SLOTS, 2), steps of dt (s)."""
+    a = accelerations(values, np.broadcast_to(history, np.shape(values)[:-3] + np.shape(history)[-3:]), dt)
+    return np.maximum(0.0, -a.min(axis=(-2, -1), initial=0.0))
+
+
 def courtesy_jacobian(values, grads, history, dt, b_c):
     """Courtesy rows c_i = a_i + b_c (N*T_p,) in m/s^2, >= 0 when the plan makes nobody brake harder than b_c (m/s^2),
     and d c_i / d Z (N*T_p, 4T_p), from rollout values (T_p, SLOTS, 2) and d values / d ego xy (T_p, SLOTS, 2, T_p, 2);

@@ -4,7 +4,7 @@ nothing passes (the shifted previous plan if the predictor still finds it safe, 
 import numpy as np
 from scipy import linalg
 
-from core.rollout import accelerations, b_i, ego_xy
+from core.rollout import b_i, braking, ego_xy
 from planner import admm, repair
 from planner.mpc import J_of, Observation, Settings, StepResult, brake_plan, costs, shift, simulate
 
@@ -40,7 +40,7 @@ def acceptable(s: Settings, obs: Observation, source, b_min: float) -> bool:
 def imposed(s: Settings, obs: Observation, values) -> float:
     """The hardest braking (m/s^2, >= 0) the predictor expects of another car, from its values (T_p, SLOTS, 2) over a
     plan's rollout."""
-    return float(max(0.0, -accelerations(values, obs.history, s.params.dt).min(initial=0.0)))
+    return float(braking(values, obs.history, s.params.dt))
 
 
 def repaired(s: Settings, obs: Observation, source, safety, st: admm.ADMMState):

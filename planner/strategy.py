@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from core.jobs import UserError
-from core.rollout import accelerations, b_i
+from core.rollout import b_i, braking
 from core.validate import Int, ListOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
@@ -464,14 +464,14 @@ class Interactive:
             return self.compiled_verdicts(s, obs, values, Delta, alpha, Z)
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
-        b, braking = self.foreseen(s, obs, values)
+        b, brakes = self.foreseen(s, obs, values)
         in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
         merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, self.never(s))
         reach = ego[:, :, 0] + ego[:, :, 3] ** 2 / (-2.0 * s.a_box[0]) - self.lane_end
         overrun = np.maximum(0.0, np.where(np.cumsum(in_target, axis=1) == 0, reach, 0.0).max(axis=1))
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
-        return [Judged(*x) for x in zip(b, braking, merge, J, overrun)]
+        return [Judged(*x) for x in zip(b, brakes, merge, J, overrun)]
 
     @staticmethod
     def foreseen(s: Settings, obs: Observation, values) -> tuple:
@@ -480,8 +480,7 @@ class Interactive:
         K, H = values.shape[:2]
         b = b_i(values.reshape(K * H, *values.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H): every step of every candidate at once
         b = b.reshape(len(b), K, H).min(axis=(0, 2), initial=np.inf)
-        history = np.broadcast_to(obs.history, (K, *np.shape(obs.history)))
-        return b, np.maximum(0.0, -accelerations(values, history, s.params.dt).min(axis=(1, 2), initial=0.0))
+        return b, braking(values, obs.history, s.params.dt)
 
     def compiled_verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
         """verdicts in one compiled call (jit_interactive.verdicts)."""
@@ -513,8 +512,8 @@ class Interactive:
         judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z, source.compiled)
         for other in source.judges:  # each closed-loop candidate as driven against the source, its path then held fixed
             worse = [self.foreseen(s, obs, self.predict(obs, other, z)) for z in (Z, c_Z) if len(z)]
-            b, braking = (np.concatenate(x) for x in zip(*worse))
-            judged = [j._replace(b_min=min(j.b_min, w), braking=max(j.braking, a)) for j, w, a in zip(judged, b, braking)]
+            b, brakes = (np.concatenate(x) for x in zip(*worse))
+            judged = [j._replace(b_min=min(j.b_min, w), braking=max(j.braking, a)) for j, w, a in zip(judged, b, brakes)]
         names, T = [*names, *c_names], s.T_p  # the families' horizons differ; the MPC's is shared
         Delta, alpha = np.vstack([Delta[:, :T], c_Delta[:, :T]]), np.vstack([alpha[:, :T], c_alpha[:, :T]])
         Z = np.vstack([Z[:, :4 * T], c_Z[:, :4 * T]])
