@@ -16,7 +16,7 @@ import numpy as np
 
 from core.jobs import UserError
 from core.rollout import b_i, braking
-from core.validate import Int, ListOf, Real, check_fields, rule
+from core.validate import Int, ListOf, OneOf, Real, check_fields, rule
 from data import bicycle
 from data.drivers import IDMDriver
 from planner import admm, jit_chase, jit_interactive, jit_rollout
@@ -24,6 +24,7 @@ from planner.mpc import Observation, Settings, costs, lane_plans, planned, simul
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
+FAR = 1e4  # m: moved this far along the road, a car outside the target lane leaves the room beside a candidate free (Interactive.room)
 K_PSI = 4.0  # 1/s: a candidate's heading loop (drive), faster than any lateral gain k_y it serves: at the world's 2.0 a brisk lean overshot its depth into the safety shape of the car beside
 
 
@@ -325,14 +326,16 @@ def gaps(s: Settings, history) -> list:
 class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
     imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; Interactive.never: none), its
-    cost J over T_p, and how far (m) it runs out of road: past the point from which, not yet merged, it could still
-    stop before its lane's end braking as hard as a_box allows (0: never)."""
+    cost J over T_p, how far (m) it runs out of road: past the point from which, not yet merged, it could still
+    stop before its lane's end braking as hard as a_box allows (0: never), and the most room (m^2) it is predicted to
+    find beside it in the target lane (Interactive.room)."""
 
     b_min: float
     braking: float
     merge: int
     J: float
     overrun: float = 0.0
+    room: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -344,9 +347,10 @@ class Interactive:
     target-lane cars). Closed loop (`Chase`): for each gap seen in the target lane, each depth of `chase_lean` and each
     `clearance`, a policy that answers the predictor's moves step by step (the predictor's own recursion drives it:
     Source.react). A candidate counts when the predicted others stay outside the safety shape and nobody is predicted to
-    brake harder than b_courtesy; among those the earliest merge, then the lowest J. The best `refine` are refined by
-    ADMM (Algorithm 1) towards their own aim and also offered as they are; the plan applied is the first by that order
-    whose step-horizon braking stays within b_courtesy."""
+    brake harder than b_courtesy; among those the earliest merge, then (`wait_by`) the most room predicted beside a
+    candidate that merges within no horizon, then the lowest J. The best `refine` are refined by ADMM (Algorithm 1)
+    towards their own aim and also offered as they are; the plan applied is the first by that order whose step-horizon
+    braking stays within b_courtesy."""
 
     lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
     merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
@@ -363,6 +367,7 @@ class Interactive:
     lane_end: float = rule(Real())  # m: where the ego's lane ends (the scenario's x_ref): a chasing candidate can always stop before it
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
     merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
+    wait_by: str = rule(OneOf(("room", "J")))  # how candidates that merge within no horizon are ordered before J: by the most room predicted beside them (room), or not (J)
 
     def __post_init__(self):
         check_fields(self, "mpc.strategy")
@@ -460,8 +465,9 @@ class Interactive:
     def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
         jit_interactive.verdicts (these numbers, to rounding), as for the sources the compiled core runs."""
+        room = self.room(s, values, Z)
         if compiled:
-            return self.compiled_verdicts(s, obs, values, Delta, alpha, Z)
+            return [j._replace(room=float(r)) for j, r in zip(self.compiled_verdicts(s, obs, values, Delta, alpha, Z), room)]
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
         b, brakes = self.foreseen(s, obs, values)
@@ -471,7 +477,23 @@ class Interactive:
         overrun = np.maximum(0.0, np.where(np.cumsum(in_target, axis=1) == 0, reach, 0.0).max(axis=1))
         Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
         J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
-        return [Judged(*x) for x in zip(b, brakes, merge, J, overrun)]
+        return [Judged(*x) for x in zip(b, brakes, merge, J, overrun, room)]
+
+    @staticmethod
+    def room(s: Settings, values, Z):
+        """The most room (K,) in m^2 the predicted values (K, H, SLOTS, 2) leave beside each candidate's path Z (K, 4H)
+        in the target lane: at each step, the least b_i between the ego put at its x on the target lane's centre and
+        the cars in that lane (core.rollout.b_i's shape), then the most of those over the horizon. What a candidate
+        that merges within no horizon has to show: the room it is predicted to open, or to meet, for a later merge."""
+        K, H = values.shape[:2]
+        if K == 0:
+            return np.empty(0)
+        v = np.array(values, float)
+        v[:, :, 0] = np.stack([Z.reshape(K, -1, 4)[:, :H, 0], np.full((K, H), s.y_ref)], -1)
+        elsewhere = s.road.lane_of(v[:, :, 1:, 1]) != s.road.lane_of(s.y_ref)
+        v[:, :, 1:, 0] += np.where(elsewhere, FAR, 0.0)  # a car outside the target lane leaves room there
+        b = b_i(v.reshape(K * H, *v.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H)
+        return b.reshape(len(b), K, H).min(axis=0, initial=np.inf).max(axis=1, initial=-np.inf)
 
     @staticmethod
     def foreseen(s: Settings, obs: Observation, values) -> tuple:
@@ -497,10 +519,12 @@ class Interactive:
         return j.b_min >= 0.0 and j.overrun == 0.0 and (s.b_courtesy is None or j.braking <= s.b_courtesy)
 
     def order(self, s: Settings, judged: list[Judged]) -> list[int]:
-        """Candidates best first: the acceptable ones by the earliest merge and the lowest J; the others after them, the
-        least unsafe first, then the least out of road."""
-        b_c = np.inf if s.b_courtesy is None else s.b_courtesy
-        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, judged[k].J) if self.acceptable(s, judged[k])
+        """Candidates best first: the acceptable ones by the earliest merge, those that merge within no horizon by
+        `wait_by` (the most room, or none), then the lowest J; the others after them, the least unsafe first, then the
+        least out of road."""
+        b_c, never = np.inf if s.b_courtesy is None else s.b_courtesy, self.never(s)
+        room = lambda j: -j.room if self.wait_by == "room" and j.merge == never else 0.0
+        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, room(judged[k]), judged[k].J) if self.acceptable(s, judged[k])
                       else (1, -min(judged[k].b_min, 0.0), judged[k].overrun, max(judged[k].braking - b_c, 0.0)))
 
     def ranked(self, s: Settings, obs: Observation, warm, source):

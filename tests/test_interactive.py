@@ -240,6 +240,39 @@ def test_the_order_puts_safe_and_courteous_first_then_the_earliest_merge_then_J(
     assert s.strategy.order(s, judged) == [3, 2, 4, 1, 5, 0]
 
 
+def test_candidates_that_merge_within_no_horizon_go_by_the_most_room_then_j():
+    s = world(4.5, 4.5)[0]
+    never = s.strategy.never(s)
+    judged = [Judged(1.0, 0.0, never, 1.0, room=-3.0), Judged(1.0, 0.0, never, 2.0, room=5.0), Judged(1.0, 0.0, 30, 9.0),
+              Judged(1.0, 0.0, never, 0.5, room=5.0), Judged(-1.0, 0.0, never, 0.0, room=50.0)]
+    assert s.strategy.order(s, judged) == [2, 3, 1, 0, 4]
+    assert replace(s.strategy, wait_by="J").order(s, judged) == [2, 3, 0, 1, 4]
+
+
+def test_a_merged_ego_has_only_open_loop_candidates_and_no_room_to_look_for():
+    s, obs = world(6.0, 9.0)
+    obs.history[:, 0, 1] = s.y_ref
+    obs = mpc.Observation(np.array([0.0, s.y_ref, 0.0, 5.0]), np.zeros(2), obs.history)
+    names, *_, judged = s.strategy.ranked(s, obs, None, make("dense", ["gradients=cv"])[1])
+    assert names and all(n.startswith("merged") for n in names) and all(j.merge == 1 for j in judged)
+
+
+def test_the_room_beside_a_candidate_is_the_widest_target_lane_opening_at_its_x():
+    """The car behind in the target lane drops back from 4 to 8 m behind the ego, the one ahead stays 10 m ahead, a car
+    in the ego's own lane sits beside it and another target-lane car is far ahead: on the superellipse's axis b_i is
+    dx^2 / stretch^2 - R^2, so the room is its value at the widest opening, 8 m."""
+    s = world(4.5, 4.5)[0]
+    t = np.arange(3.0)
+    values = np.zeros((1, 3, 5, 2))
+    values[0, :, 1] = np.stack([10.0 + 0 * t, 4.0 + 0 * t], -1)  # ahead, target lane
+    values[0, :, 2] = np.stack([-4.0 - 2.0 * t, 4.0 + 0 * t], -1)  # behind, dropping back
+    values[0, :, 3] = np.stack([0.0 * t, 0.0 * t], -1)  # beside the ego in its own lane: no part of the room
+    values[0, :, 4] = np.stack([100.0 + 0 * t, 4.1 + 0 * t], -1)
+    Z = np.zeros((1, 12))  # the ego stays at x = 0, in its lane (y = 0)
+    assert s.stretch > 1 and s.y_ref == 4.0
+    assert Interactive.room(s, values, Z) == pytest.approx([8.0**2 / s.stretch**2 - s.R**2])
+
+
 def test_an_interactive_step_solves_and_reports_which_candidate_it_applied():
     s, obs = world(4.5, 4.5)
     _, source, _ = make("dense", ["gradients=cv", "mpc=interactive"])
