@@ -486,10 +486,8 @@ class Interactive:
         the cars in that lane (core.rollout.b_i's shape), then the most of those over the horizon. What a candidate
         that merges within no horizon has to show: the room it is predicted to open, or to meet, for a later merge."""
         K, H = values.shape[:2]
-        if K == 0:
-            return np.empty(0)
         v = np.array(values, float)
-        v[:, :, 0] = np.stack([Z.reshape(K, -1, 4)[:, :H, 0], np.full((K, H), s.y_ref)], -1)
+        v[:, :, 0] = np.stack([Z.reshape(K, Z.shape[1] // 4, 4)[:, :H, 0], np.full((K, H), s.y_ref)], -1)
         elsewhere = s.road.lane_of(v[:, :, 1:, 1]) != s.road.lane_of(s.y_ref)
         v[:, :, 1:, 0] += np.where(elsewhere, FAR, 0.0)  # a car outside the target lane leaves room there
         b = b_i(v.reshape(K * H, *v.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H)
@@ -523,8 +521,8 @@ class Interactive:
         `wait_by` (the most room, or none), then the lowest J; the others after them, the least unsafe first, then the
         least out of road."""
         b_c, never = np.inf if s.b_courtesy is None else s.b_courtesy, self.never(s)
-        room = lambda j: -j.room if self.wait_by == "room" and j.merge == never else 0.0
-        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, room(judged[k]), judged[k].J) if self.acceptable(s, judged[k])
+        waiting = lambda j: -j.room if self.wait_by == "room" and j.merge == never else 0.0
+        return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, waiting(judged[k]), judged[k].J) if self.acceptable(s, judged[k])
                       else (1, -min(judged[k].b_min, 0.0), judged[k].overrun, max(judged[k].braking - b_c, 0.0)))
 
     def ranked(self, s: Settings, obs: Observation, warm, source):

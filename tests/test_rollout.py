@@ -83,4 +83,3 @@ def test_a_feedback_policy_answers_the_predicted_window_of_its_own_step():
     with torch.no_grad():
         assert torch.allclose(rollout(net, hist, fixed), out)
 
-
