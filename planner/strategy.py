@@ -328,7 +328,7 @@ class Judged(NamedTuple):
     imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; Interactive.never: none), its
     cost J over T_p, how far (m) it runs out of road: past the point from which, not yet merged, it could still
     stop before its lane's end braking as hard as a_box allows (0: never), and the most room (m^2) it is predicted to
-    find beside it in the target lane (Interactive.room)."""
+    find beside it in the target lane (Interactive.room; 0 where the order does not read it)."""
 
     b_min: float
     braking: float
@@ -465,7 +465,7 @@ class Interactive:
     def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
         jit_interactive.verdicts (these numbers, to rounding), as for the sources the compiled core runs."""
-        room = self.room(s, values, Z)
+        room = self.room(s, values, Z) if self.wait_by == "room" else np.zeros(len(values))  # by J: never read
         if compiled:
             return [j._replace(room=float(r)) for j, r in zip(self.compiled_verdicts(s, obs, values, Delta, alpha, Z), room)]
         K, H = Delta.shape
