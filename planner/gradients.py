@@ -14,9 +14,11 @@ from omegaconf import DictConfig, OmegaConf
 from core.jobs import CONF_DIR, UserError, atomic_file, options
 from core.rollout import react, rollout, rollout_jacobian
 from core.validate import TRAINED_PREDICTORS
+from distill.models import probe_window
 from surrogate.kernels import compiled_phi
 
 COMPILED_PREDICTORS = ("cv", "student")  # the predictors whose rollout planner.jit_rollout writes as numba kernels
+BATCHED = 4  # new windows: from this many in one call, the teacher's onnxruntime graph beats its numba kernel (one core: 386 against 405 us at 4, 2.3 against 5.7 ms at 50)
 
 
 class Source:
@@ -73,6 +75,13 @@ class ExactLocal(Source):
         return rollout_jacobian(self.predictor.phi_jac, history, ego_future)
 
 
+def same_network(phi, surrogate) -> bool:
+    """Whether a fused surrogate export's forward pass predicts the others as phi does (within 1e-4 m) on the probe
+    window: an export made from an earlier training of the teacher does not."""
+    window = probe_window(*surrogate.session.get_inputs()[0].shape[1:3])
+    return bool(np.abs(phi(window) - surrogate.phi(window))[:, 1:].max() <= 1e-4)
+
+
 class Surrogate(Source):
     """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule."""
 
@@ -81,20 +90,23 @@ class Surrogate(Source):
         self.surrogate = surrogate
         self.joint = surrogate.fused  # a fused export gives values and J from one file, J for a whole rollout in one call
         self.seen = (None, {})  # (history, {window bytes: next xy}) of the step being planned
-        self.forward = compiled_phi(predictor) or (surrogate.phi if surrogate.fused else predictor.phi)
+        kernel = compiled_phi(predictor)
+        self.forward = kernel or (surrogate.phi if surrogate.fused else predictor.phi)
+        self.batched = surrogate.phi if surrogate.fused and (kernel is None or same_network(kernel, surrogate)) else self.forward
 
     def phi(self, window):
-        """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the teacher's network in float64 by a numba kernel
-        (surrogate.kernels: ~2x faster than onnxruntime at batch 1), else a fused export's forward pass (onnxruntime: ~4x
-        faster than torch eager, equal to ~1e-5 m), else the predictor's. Each distinct window of the step being planned
-        is computed once, the new ones of a batch in one call: a step's candidates share most of theirs (mpc=interactive:
-        1.2 thousand distinct of 2.9 thousand windows a step on the bench's dense states; the first window of every
-        rollout, and a closed-loop candidate's until its policy departs from its siblings')."""
+        """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the teacher's network in float64, fewer than
+        BATCHED new windows by a numba kernel (surrogate.kernels: ~2x faster than onnxruntime at batch 1), more in one
+        call of the fused export's forward pass where it is the same network (same_network; onnxruntime: ~2x faster
+        than the kernel from 10 windows on, equal to it within 1e-6 m); else the export's, else the predictor's. Each distinct window of the step being planned is computed once, the new
+        ones of a batch in one call: a step's candidates share most of theirs (mpc=interactive: 1.2 thousand distinct
+        of 2.9 thousand windows a step on the bench's dense states; the first window of every rollout, and a
+        closed-loop candidate's until its policy departs from its siblings')."""
         memo = self.seen[1]
         keys = [w.tobytes() for w in window]
         new = {k: b for b, k in enumerate(keys) if k not in memo}  # a dict: a window repeated in the batch counts once
         if new:
-            memo.update(zip(new, self.forward(window[list(new.values())])))
+            memo.update(zip(new, (self.batched if len(new) >= BATCHED else self.forward)(window[list(new.values())])))
         return np.array([memo[k] for k in keys]).reshape(len(keys), *window.shape[2:])  # np.stack: 3x the cost
 
     def react(self, history, ego_next, T, B):

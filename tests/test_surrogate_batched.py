@@ -117,3 +117,27 @@ def test_the_compiled_teacher_is_the_torch_network_to_float32_rounding(exported,
     history, ego = states[0]
     np.testing.assert_allclose(source.values(history, ego[None]), rollout(teacher.phi, history[None], ego[None]),
                                rtol=0, atol=1e-5)
+
+
+def test_a_batch_of_new_windows_goes_to_the_export_only_when_it_is_the_teachers_network(exported, states, tmp_path,
+                                                                                        monkeypatch):
+    """From BATCHED new windows on, the teacher's values come from one onnxruntime call of a fused export of the same
+    network, equal to the kernel's to float32 rounding; an export made from another network (here the student's) is
+    never asked for values after the check that tells them apart."""
+    from planner.gradients import BATCHED
+
+    torch.manual_seed(3)
+    net = instantiate(compose_cfg("distill", ["model=teacher"]).model.net, hidden=8, pool=8, decoder=[16, 16]).eval()
+    torch.nn.init.normal_(net.decoder[-1].weight, 0.0, 0.5)
+    teacher = TorchPredictor("teacher", net)
+    export(Fused(JacobianNet(T_OBS, SLOTS, 16, 1, "").eval(), net), tmp_path / "surrogate.onnx", T_OBS, SLOTS, "teacher")
+    own = models.load(tmp_path, T_OBS, SLOTS - 1)
+    history, _ = states[0]
+    plans = np.stack([ego for _, ego in states[:BATCHED]])
+    want = rollout(teacher.phi, np.broadcast_to(history, (BATCHED, *history.shape)), plans)
+    assert np.abs(want - rollout(teacher.phi, history[None], plans[:1]))[0].max() < 1e-9 and len(plans) == BATCHED
+    for surrogate, asked in ((own, True), (exported, False)):
+        source = Surrogate("surrogate", teacher, surrogate)
+        calls = counted(surrogate, monkeypatch)
+        np.testing.assert_allclose(source.values(history, plans), want, rtol=0, atol=1e-5)
+        assert calls["next"] == ([BATCHED] * (plans.shape[1] - 1) if asked else [])  # the shared first window: the kernel
