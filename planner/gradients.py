@@ -18,7 +18,8 @@ from distill.models import probe_window
 from surrogate.kernels import compiled_phi
 
 COMPILED_PREDICTORS = ("cv", "student")  # the predictors whose rollout planner.jit_rollout writes as numba kernels
-BATCHED = 4  # new windows: from this many in one call, the teacher's onnxruntime graph beats its numba kernel (one core: 386 against 405 us at 4, 2.3 against 5.7 ms at 50)
+BATCHED = 4  # new windows: from this many in one call the teacher's onnxruntime graph beats its numba kernel (one core:
+# 386 against 405 us at 4, 2.3 against 5.7 ms at 50; Surrogate.phi)
 
 
 class Source:
@@ -92,16 +93,17 @@ class Surrogate(Source):
         self.seen = (None, {})  # (history, {window bytes: next xy}) of the step being planned
         kernel = compiled_phi(predictor)
         self.forward = kernel or (surrogate.phi if surrogate.fused else predictor.phi)
-        self.batched = surrogate.phi if surrogate.fused and (kernel is None or same_network(kernel, surrogate)) else self.forward
+        self.batched = surrogate.phi if kernel and surrogate.fused and same_network(kernel, surrogate) else self.forward
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the teacher's network in float64, fewer than
         BATCHED new windows by a numba kernel (surrogate.kernels: ~2x faster than onnxruntime at batch 1), more in one
         call of the fused export's forward pass where it is the same network (same_network; onnxruntime: ~2x faster
-        than the kernel from 10 windows on, equal to it within 1e-6 m); else the export's, else the predictor's. Each distinct window of the step being planned is computed once, the new
-        ones of a batch in one call: a step's candidates share most of theirs (mpc=interactive: 1.2 thousand distinct
-        of 2.9 thousand windows a step on the bench's dense states; the first window of every rollout, and a
-        closed-loop candidate's until its policy departs from its siblings')."""
+        than the kernel from 10 windows on, equal to it within 1e-6 m); else the export's, else the predictor's. Each
+        distinct window of the step being planned is computed once, the new ones of a batch in one call: a step's
+        candidates share most of theirs (mpc=interactive: 1.2 thousand distinct of 2.9 thousand windows a step on the
+        bench's dense states; the first window of every rollout, and a closed-loop candidate's until its policy
+        departs from its siblings')."""
         memo = self.seen[1]
         keys = [w.tobytes() for w in window]
         new = {k: b for b, k in enumerate(keys) if k not in memo}  # a dict: a window repeated in the batch counts once

@@ -135,7 +135,6 @@ def test_a_batch_of_new_windows_goes_to_the_export_only_when_it_is_the_teachers_
     history, _ = states[0]
     plans = np.stack([ego for _, ego in states[:BATCHED]])
     want = rollout(teacher.phi, np.broadcast_to(history, (BATCHED, *history.shape)), plans)
-    assert np.abs(want - rollout(teacher.phi, history[None], plans[:1]))[0].max() < 1e-9 and len(plans) == BATCHED
     for surrogate, asked in ((own, True), (exported, False)):
         source = Surrogate("surrogate", teacher, surrogate)
         calls = counted(surrogate, monkeypatch)
