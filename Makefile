@@ -30,7 +30,7 @@ demo: $(STAMP)
 	$(BIN)/distill model=teacher model.epochs=4
 	$(BIN)/distill model=student
 	$(BIN)/python -m bench.candidates worlds=10 "drive=[cv]" out_dir=data/small name=candidates
-	$(BIN)/distill model=student dataset=interactive dataset_dir=data/small/candidates init_from=models/student.ckpt model.epochs=10
+	$(BIN)/distill model=student dataset=interactive dataset_dir=data/small/candidates init_from=models/student.ckpt model.epochs=10 eval_dir=data/small
 	$(BIN)/planner scenario=dense gradients=student mpc=courteous method=admm episodes=8 seed=5000000 plots=false record_dir=data/small/iterates
 	$(BIN)/surrogate data.iterates=data/small/iterates data.iterate_states=2000
 	$(BIN)/planner --gradients=surrogate method=both scenario=two_lane

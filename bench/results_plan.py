@@ -103,11 +103,37 @@ def check_verdicts(job, planner: range, interaction_cfg) -> None:
     """One UserError naming results_preset.verdicts_seed if the verdicts' worlds were the dataset's, the planner's or the
     interaction benchmark's."""
     seeds = heldout_seeds("results_preset.verdicts_seed", job.seed_offset, job.worlds, job.dataset)
-    for name, other in (("planner", planner), ("interaction benchmark", interaction_worlds(interaction_cfg))):
+    check_clear("results_preset.verdicts_seed", job.seed_offset, "the verdicts' worlds", seeds,
+                {"planner": planner, "interaction benchmark": interaction_worlds(interaction_cfg)})
+
+
+def check_clear(key: str, value, what: str, seeds: range, others: dict) -> None:
+    """One UserError naming `key`=value if `seeds` (`what`) overlap one of others' {name: seed range}."""
+    for name, other in others.items():
         if seeds.start < other.stop and other.start < seeds.stop:
-            raise UserError(f"results_preset.verdicts_seed={job.seed_offset}: the verdicts' worlds {seeds.start}.."
-                            f"{seeds.stop - 1} overlap the {name}'s {other.start}..{other.stop - 1}; choose another "
-                            f"results_preset.verdicts_seed")
+            raise UserError(f"{key}={value}: {what} {seeds.start}..{seeds.stop - 1} overlap the {name}'s "
+                            f"{other.start}..{other.stop - 1}; choose another {key}")
+
+
+def candidates_config(cfg, work: Path, models: Path, others: dict):
+    """The `python -m bench.candidates` job (None without results_preset.candidates): the world's answers to the
+    interactive step's own candidates, the windows every student is distilled further on (add_training's `step`),
+    their worlds clear of the dataset's episodes and of others' {name: seed range}; one UserError naming
+    results_preset.candidates for a bad value there."""
+    from bench import candidates
+
+    p = cfg.results_preset
+    if p.candidates is None:
+        return None
+    job = job_config("candidates", [f"dataset={p.dataset}", f"out_dir={work / 'data'}", "name=candidates",
+                                    f"models_dir={models}", *p.candidates])
+    try:
+        validate.check(job, candidates.SCHEMA)
+        seeds, _ = candidates.worlds(job)
+        check_clear("seed_offset", job.seed_offset, "the candidates' worlds", seeds, others)
+    except UserError as e:
+        raise UserError(f"results_preset.candidates: {e}") from e
+    return job
 
 
 def ceiling_worlds(p) -> dict:
@@ -122,21 +148,32 @@ def ceiling_worlds(p) -> dict:
 
 
 def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, models: Path, runs: Path, extra, seed=0,
-                 surrogate=True, iterates=None, trained=("teacher", "student")):
+                 surrogate=True, iterates=None, trained=("teacher", "student"), step=None):
     """Add to `plan` the `trained` models (the teacher, the student) and (with `surrogate`) the surrogate trained on dataset_dir (of conf/dataset/
     option `dataset`) into `models` with training seed `seed`: jobs 'distill <model> <tag>' and 'surrogate <tag>', their
     run folders runs/distill-<model>-<name> and runs/surrogate-<name>; extra: each job's extra overrides by key
-    (teacher, student, surrogate). With `iterates` (overrides of a `planner` batch), job 'iterates <tag>' first records
-    the states that planner linearises at into runs/iterates-<name>, and the surrogate trains and is tested on them."""
+    (teacher, student, surrogate). With `step` (the folder of bench.candidates' windows, the fine-tune's overrides), the
+    student is distilled on dataset_dir in job 'distill student on the dataset <tag>', then from those weights on the
+    interactive step's own states in 'distill student <tag>' (scored on dataset_dir's test split, as the first).
+    With `iterates` (overrides of a `planner` batch), job 'iterates <tag>' first records the states that planner
+    linearises at into runs/iterates-<name>, and the surrogate trains and is tested on them."""
     from distill import train
     from planner import cli as planner_cli
     from surrogate import cli as surrogate_cli
 
     common = [f"dataset={dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}"]
     for model in trained:
-        plan.add(f"distill {model} {tag}", train.run, job_config("distill", [
+        tuned = model == "student" and step is not None
+        plan.add(f"distill {model} {'on the dataset ' * tuned}{tag}", train.run, job_config("distill", [
             f"model={model}", *common, f"run_dir={runs / f'distill-{model}-{name}'}", "trainer.enable_progress_bar=false",
             *extra[model]]))
+        if tuned:
+            windows, overrides = step
+            plan.add(f"distill student {tag}", train.run, job_config("distill", [
+                "model=student", f"dataset={dataset}", f"dataset_dir={windows}", f"eval_dir={dataset_dir}",
+                f"models_dir={models}", f"seed={seed}", f"init_from={models / 'student.ckpt'}",
+                f"run_dir={runs / f'distill-student-step-{name}'}", "trainer.enable_progress_bar=false", *extra[model],
+                *overrides]))
     if not surrogate:
         return
     recorded = []
@@ -191,7 +228,7 @@ def variant_models(work: Path, name: str, k) -> Path:
 def build_plan(cfg, work: Path):
     """The preset's jobs (Plan) and the planner batches' output folders {(scenario, row, seed k or None): folder}; the
     cooperation sweep's batches under scenario swept(level), of the first training alone."""
-    from bench import interaction, step_time, verdicts
+    from bench import candidates, interaction, step_time, verdicts
     from data import cli as data_cli
     from planner import cli as planner_cli
     from planner.setup import planner_config
@@ -211,31 +248,38 @@ def build_plan(cfg, work: Path):
     plan.add("make-dataset", data_cli.run, job_config("make_dataset", [f"dataset={p.dataset}", f"out_dir={data_dir}",
                                                                        "plot_episodes=0"]))
     models = lambda k: work / "models" / f"seed{k}"
-    for k in p.training_seeds:
-        add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k, iterates=p.iterates)
     first_seed = p.training_seeds[0]
+    interaction_cfgs = {k: job_config("evaluate_interaction", [
+        f"dataset={p.dataset}", f"models_dir={models(k)}", f"out_dir={work / 'interaction' / f'seed{k}'}",
+        f"sources=[{','.join(s for s in p.interaction_sources if i == 0 or s in TRAINED)}]",  # untrained ones once
+        *p.interaction]) for i, k in enumerate(p.training_seeds)}
+    planner_seeds = check_seeds(cfg, interaction_cfgs[first_seed])
+    judged = verdicts_config(cfg, work, models, fidelity)
+    check_verdicts(judged, planner_seeds, interaction_cfgs[first_seed])
+    windows = candidates_config(cfg, work, models(first_seed), {
+        "planner": planner_seeds, "interaction benchmark": interaction_worlds(interaction_cfgs[first_seed]),
+        "verdicts job": heldout_seeds("results_preset.verdicts_seed", judged.seed_offset, judged.worlds, judged.dataset)})
+    step = None
+    if windows is not None:
+        plan.add("candidates", candidates.run, windows)
+        step = (Path(windows.out_dir) / windows.name, list(p.student_step))
+    for k in p.training_seeds:
+        add_training(plan, f"seed {k}", k, p.dataset, dataset_dir, models(k), work / "runs", p, seed=k, iterates=p.iterates,
+                     step=step)
     for v in fidelity:  # the graded trainings, first training seed alone; a student variant distils that training's teacher
         folder = variant_models(work, v.name, first_seed)
         if v.model == "student":
             plan.add(f"copy teacher {v.name}", copy_teacher, models(first_seed), folder)
         add_training(plan, f"{v.name} seed {first_seed}", f"{v.name}-{first_seed}", p.dataset, dataset_dir, folder,
                      work / "runs", {v.model: [*p[v.model], *v.overrides]}, seed=first_seed, surrogate=False,
-                     trained=(v.model,))
-    interaction_cfgs = {}
-    for i, k in enumerate(p.training_seeds):
-        sources = [s for s in p.interaction_sources if i == 0 or s in TRAINED]  # untrained ones once
-        interaction_cfgs[k] = job_config("evaluate_interaction", [
-            f"dataset={p.dataset}", f"models_dir={models(k)}", f"out_dir={work / 'interaction' / f'seed{k}'}",
-            f"sources=[{','.join(sources)}]", *p.interaction])
+                     trained=(v.model,), step=step)
+    for k in p.training_seeds:
         plan.add(f"evaluate-interaction seed {k}", interaction.run, interaction_cfgs[k])
     for v in fidelity:
         plan.add(f"evaluate-interaction {v.name}", interaction.run, job_config("evaluate_interaction", [
             f"dataset={p.dataset}", f"models_dir={variant_models(work, v.name, first_seed)}",
             f"out_dir={work / 'interaction' / v.name}", f"sources=[{v.model}]", *p.interaction]))
-    # the fidelity figure's good_kept: one job, so every training and variant is judged on the same states
-    judged = verdicts_config(cfg, work, models, fidelity)
-    check_verdicts(judged, check_seeds(cfg, interaction_cfgs[first_seed]), interaction_cfgs[first_seed])
-    plan.add("verdicts", verdicts.run, judged)
+    plan.add("verdicts", verdicts.run, judged)  # good_kept: one job, every training and variant judged on the same states
     options = mpc_overrides(p.mpc_options)
     every, first = list(p.training_seeds), list(p.training_seeds[:1])
     runs = [("dense", s, p.dense_episodes, extra, every) for extra in options for s in p.sources] + \

@@ -304,7 +304,7 @@ TRAINER = {
 
 DISTILL = {
     **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1, nullable=True),
-    "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "models_dir": Text(), "run_dir": Text(),
+    "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "eval_dir": Text(), "models_dir": Text(), "run_dir": Text(),
     "ckpt_path": Text(nullable=True), "init_from": Text(nullable=True), "dataset.name": Name(),
     "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,
     "model.teacher": OneOf(("teacher",), optional=True),
@@ -370,7 +370,8 @@ RESULTS = {
     "results_preset.name": Text(), "results_preset.dataset": OneOf(tuple(options("dataset"))),
     "results_preset.training_seeds": ListOf(SEED, at_least=1),
     **{f"results_preset.{k}": OVERRIDES for k in ("teacher", "student", "surrogate", "iterates", "planner", "interaction", "showcase")},
-    "results_preset.bench": ListOf(Text(), nullable=True),
+    "results_preset.bench": ListOf(Text(), nullable=True), "results_preset.candidates": ListOf(Text(), nullable=True),
+    "results_preset.student_step": OVERRIDES,
     **{f"results_preset.{k}": ListOf(GRADIENT_OPTIONS) for k in ("sources", "table2_sources")},
     "results_preset.scenarios": ListOf(OneOf(tuple(options("scenario")))),
     "results_preset.episodes": Int(1), "results_preset.table2_episodes": Int(1),

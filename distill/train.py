@@ -160,8 +160,8 @@ def check_inputs(cfg: DictConfig):
         if cfg.model.task.get(weight, 0) and not cfg.model.data.get(groups, 0):
             raise UserError(f"model.task.{weight}={cfg.model.task[weight]} needs model.data.{groups} > 0 (branch groups "
                             "per batch); without them the term is never computed")
-    for split in dict.fromkeys(("train", "val", cfg.eval_split)):
-        dataset.load(cfg.dataset_dir, split)  # a missing or corrupt split stops here, naming the file
+    for folder, split in dict.fromkeys(((cfg.dataset_dir, "train"), (cfg.dataset_dir, "val"), (cfg.eval_dir, cfg.eval_split))):
+        dataset.load(folder, split)  # a missing or corrupt split stops here, naming the file
     if cfg.ckpt_path is not None:
         if not Path(cfg.ckpt_path).is_file():
             raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
@@ -192,7 +192,7 @@ def run(cfg: DictConfig):
         best = Path(trainer.checkpoint_callback.best_model_path or trainer.checkpoint_callback.last_model_path)
         predictor = models.StudentPredictor(models.read_checkpoint(best)) if name == "student" else \
             models.TorchPredictor(name, models.read_checkpoint(best))
-        test = dataset.load(cfg.dataset_dir, cfg.eval_split)
+        test = dataset.load(cfg.eval_dir, cfg.eval_split)
         t_p = cfg.paper.T_p  # rollout horizon of the ade_rollout / fde_rollout figures
         table = {name: metrics.ade(predictor, test, t_p), "cv": metrics.ade(models.load("cv", cfg.models_dir), test, t_p)}
         results.update(table[name])

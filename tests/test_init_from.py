@@ -4,7 +4,8 @@ import torch
 from hydra.utils import instantiate
 
 from core.jobs import UserError
-from distill import models
+from data import dataset
+from distill import metrics, models
 from distill.train import run
 from tests.conftest import compose_cfg
 
@@ -38,3 +39,17 @@ def test_a_checkpoint_that_cannot_start_the_training_is_one_line(tiny_dataset, t
     with pytest.raises(UserError, match=message):
         run(distill(tiny_dataset, tmp_path, "model=teacher", *over))
     assert not (tmp_path / "run").exists() and not (tmp_path / "models").exists()
+
+
+def test_a_fine_tune_is_scored_on_the_eval_dir_s_test_split(tiny_dataset, tiny_models, tmp_path):
+    val = dataset.load(tiny_dataset, "val")
+    other = tmp_path / "other"  # a second set whose test split is tiny's val split
+    dataset.save(other, {s: val for s in ("train", "val", "test")}, dataset.read_meta(tiny_dataset))
+    out = run(distill(tiny_dataset, tmp_path, "model=teacher", f"init_from={tiny_models[0] / 'teacher.ckpt'}",
+                      "trainer.max_epochs=1", "model.task.lr=1e-12", f"eval_dir={other}"))
+    teacher, t_p = models.load("teacher", tmp_path / "models"), compose_cfg("distill").paper.T_p
+    assert out["ade_1step_m"] == pytest.approx(metrics.ade(teacher, val, t_p)["ade_1step_m"], rel=1e-9)
+    assert out["ade_1step_m"] != pytest.approx(metrics.ade(teacher, dataset.load(tiny_dataset, "test"), t_p)["ade_1step_m"])
+    with pytest.raises(UserError, match=r"^dataset not found: .*none/meta.json is missing"):
+        run(distill(tiny_dataset, tmp_path / "bad", "model=teacher", f"eval_dir={tmp_path / 'none'}"))
+    assert not (tmp_path / "bad").exists()

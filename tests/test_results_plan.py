@@ -132,11 +132,38 @@ def test_one_verdicts_job_judges_every_training_and_variant_on_held_out_worlds_a
         "student seed 1", "teacher teacher_half seed 0", "student student_narrow seed 0"))
 
 
+def test_every_student_is_distilled_further_on_the_interactive_step_s_own_states_before_anything_reads_it(tmp_path):
+    labels, jobs, _ = tiny_plan(tmp_path, "results_preset.training_seeds=[0,1]", VARIANTS)
+    windows = jobs["candidates"]
+    assert labels.index("make-dataset") < labels.index("candidates") < labels.index("distill student on the dataset seed 0")
+    assert (windows.worlds, windows.per_state, windows.dataset.name, list(windows.drive)) == (3, 2, "tiny", ["cv"])
+    folder, dataset_dir = str(tmp_path / "data" / "candidates"), str(tmp_path / "data" / "tiny")
+    for tag, models in (("seed 0", tmp_path / "models" / "seed0"), ("seed 1", tmp_path / "models" / "seed1"),
+                        ("student_narrow seed 0", tmp_path / "models" / "variants" / "student_narrow" / "seed0")):
+        first, tuned = jobs[f"distill student on the dataset {tag}"], jobs[f"distill student {tag}"]
+        assert (first.dataset_dir, first.eval_dir, first.init_from) == (dataset_dir, dataset_dir, None)
+        # from the first's weights, on the candidates' windows, scored on the dataset's test split as the first
+        assert (tuned.dataset_dir, tuned.eval_dir, tuned.init_from) == (folder, dataset_dir, str(models / "student.ckpt"))
+        assert first.models_dir == tuned.models_dir == str(models) and tuned.model.net == first.model.net
+        assert labels.index(f"distill student on the dataset {tag}") < labels.index(f"distill student {tag}")
+    assert list(jobs["distill student student_narrow seed 0"].model.net.hidden) == [64, 64]  # the variant's own width
+    for k in (0, 1):  # the surrogate's recorded states and everything after read the fine-tuned student
+        assert labels.index(f"distill student seed {k}") < labels.index(f"iterates seed {k}")
+    labels, jobs, _ = tiny_plan(tmp_path, "results_preset.candidates=null")
+    assert "candidates" not in labels and not any("on the dataset" in label for label in labels)
+    assert (jobs["distill student seed 0"].dataset_dir, jobs["distill student seed 0"].init_from) == (dataset_dir, None)
+
+
 @pytest.mark.parametrize("override, message", [
     ("results_preset.verdicts_seed=2000000", r"^results_preset.verdicts_seed=2000000: the verdicts' worlds "
                                              r"2000000..2000000 overlap the planner's 2000000..2000003; choose another"),
     ("results_preset.verdicts_seed=1000000", r"^results_preset.verdicts_seed=1000000: the verdicts' worlds "
                                              r"1000000..1000000 overlap the interaction benchmark's 1000000\.\."),
+    ("results_preset.candidates=['seed_offset=2000000','reserved=[]']", r"^results_preset.candidates: seed_offset=2000000: "
+     r"the candidates' worlds 2000000..2000039 overlap the planner's 2000000..2000003; choose another seed_offset$"),
+    ("results_preset.candidates=['seed_offset=2500000','reserved=[]']", r"^results_preset.candidates: seed_offset=2500000: "
+     r"the candidates' worlds 2500000..2500039 overlap the verdicts job's"),
+    ("results_preset.candidates=['per_state=0']", r"^results_preset.candidates: per_state=0: must be an integer >= 1$"),
     ("results_preset.verdicts=['worlds=0']", r"^results_preset.verdicts: worlds=0: must be an integer >= 1$"),
     ("results_preset.fidelity_sources=[oracle]", r"^results_preset.fidelity_sources=\['oracle'\]: must be"),
     ("results_preset.fidelity_sources=[teacher]", r"^results_preset.fidelity_sources: teacher not in "
