@@ -99,12 +99,13 @@ def verdicts_config(cfg, work: Path, models, fidelity: list):
     return job
 
 
-def check_verdicts(job, planner: range, interaction_cfg) -> None:
-    """One UserError naming results_preset.verdicts_seed if the verdicts' worlds were the dataset's, the planner's or the
-    interaction benchmark's."""
+def check_verdicts(job, planner: range, interaction_cfg) -> range:
+    """The verdicts' world seeds; one UserError naming results_preset.verdicts_seed if they were the dataset's, the
+    planner's or the interaction benchmark's."""
     seeds = heldout_seeds("results_preset.verdicts_seed", job.seed_offset, job.worlds, job.dataset)
     check_clear("results_preset.verdicts_seed", job.seed_offset, "the verdicts' worlds", seeds,
                 {"planner": planner, "interaction benchmark": interaction_worlds(interaction_cfg)})
+    return seeds
 
 
 def check_clear(key: str, value, what: str, seeds: range, others: dict) -> None:
@@ -164,7 +165,7 @@ def add_training(plan: Plan, tag: str, name, dataset: str, dataset_dir: Path, mo
     common = [f"dataset={dataset}", f"dataset_dir={dataset_dir}", f"models_dir={models}", f"seed={seed}"]
     for model in trained:
         tuned = model == "student" and step is not None
-        plan.add(f"distill {model} {'on the dataset ' * tuned}{tag}", train.run, job_config("distill", [
+        plan.add(f"distill {model} {'on the dataset ' if tuned else ''}{tag}", train.run, job_config("distill", [
             f"model={model}", *common, f"run_dir={runs / f'distill-{model}-{name}'}", "trainer.enable_progress_bar=false",
             *extra[model]]))
         if tuned:
@@ -255,10 +256,9 @@ def build_plan(cfg, work: Path):
         *p.interaction]) for i, k in enumerate(p.training_seeds)}
     planner_seeds = check_seeds(cfg, interaction_cfgs[first_seed])
     judged = verdicts_config(cfg, work, models, fidelity)
-    check_verdicts(judged, planner_seeds, interaction_cfgs[first_seed])
     windows = candidates_config(cfg, work, models(first_seed), {
         "planner": planner_seeds, "interaction benchmark": interaction_worlds(interaction_cfgs[first_seed]),
-        "verdicts job": heldout_seeds("results_preset.verdicts_seed", judged.seed_offset, judged.worlds, judged.dataset)})
+        "verdicts job": check_verdicts(judged, planner_seeds, interaction_cfgs[first_seed])})
     step = None
     if windows is not None:
         plan.add("candidates", candidates.run, windows)
