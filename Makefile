@@ -76,7 +76,8 @@ ceiling: $(STAMP)
 # every gradient source, Table II scenarios, the cooperation sweep, interaction benchmark, step-time bench, the ceiling
 # after the batches with their runs as starts): results/README-results.md and
 # results/*.png. About 2.75 hours on 2 cores, estimated (one training seed took 49-61 min before the students'
-# fine-tune on the interactive step's states, about 5 min more a training); `make results-full` is the preset for a bigger machine (or a Ray cluster: `results results_preset=full backend=ray ray.address=auto`).
+# fine-tune on the interactive step's states, about 5 min more a training); `make results-full` is the preset for a
+# bigger machine (or a Ray cluster: `results results_preset=full backend=ray ray.address=auto`).
 results: $(STAMP)
 	$(BIN)/results results_preset=small
 
