@@ -2,9 +2,9 @@
 
 Three parts: the job plan (bench/results_plan.py: the dataset; the world's answers to the interactive step's own
 candidates (bench/candidates.py); per training seed k the teacher, the student (distilled on the dataset, then on those
-candidates' windows) and the surrogate into <work_dir>/models/seed<k>; the interaction benchmark per training; the interactive step's verdicts
-(bench/verdicts.py) of every training's fidelity predictors on the same held-out states; the planner's held-out batches (dense
-traffic, the headline; random merges; the Table II scenarios) of every gradient source with both methods, once per
+candidates' windows) and the surrogate into <work_dir>/models/seed<k>; the interaction benchmark per training; the
+interactive step's verdicts (bench/verdicts.py) of every training's fidelity predictors on the same held-out states;
+the planner's held-out batches (dense traffic, the headline; random merges; the Table II scenarios) of every gradient source with both methods, once per
 training for the trained sources and once for cv and analytic; the cooperation sweep's dense batches at the other
 levels, first training alone; after them, the clairvoyant ceiling on the same dense worlds, on the calibration scenarios,
 on Table II's worlds and per cooperation level, every batch's runs on its scenario among its starts; the step-time bench;

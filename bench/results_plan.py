@@ -116,20 +116,24 @@ def check_clear(key: str, value, what: str, seeds: range, others: dict) -> None:
                             f"{other.start}..{other.stop - 1}; choose another {key}")
 
 
-def candidates_config(cfg, work: Path, models: Path, others: dict):
+def candidates_config(cfg, work: Path, others: dict):
     """The `python -m bench.candidates` job (None without results_preset.candidates): the world's answers to the
     interactive step's own candidates, the windows every student is distilled further on (add_training's `step`),
-    their worlds clear of the dataset's episodes and of others' {name: seed range}; one UserError naming
-    results_preset.candidates for a bad value there."""
+    their worlds clear of the dataset's episodes and of others' {name: seed range}, driven by sources that need no
+    trained model (the job runs before any training); one UserError naming results_preset.candidates otherwise."""
     from bench import candidates
 
     p = cfg.results_preset
     if p.candidates is None:
         return None
     job = job_config("candidates", [f"dataset={p.dataset}", f"out_dir={work / 'data'}", "name=candidates",
-                                    f"models_dir={models}", *p.candidates])
+                                    *p.candidates])
     try:
         validate.check(job, candidates.SCHEMA)
+        trained = [s for s in job.drive if s in TRAINED]
+        if trained:
+            raise UserError(f"drive={list(job.drive)}: {', '.join(trained)} needs trained models, and this job runs "
+                            f"before any training; drive with sources that need none (cv, analytic)")
         seeds, _ = candidates.worlds(job)
         check_clear("seed_offset", job.seed_offset, "the candidates' worlds", seeds, others)
     except UserError as e:
@@ -256,7 +260,7 @@ def build_plan(cfg, work: Path):
         *p.interaction]) for i, k in enumerate(p.training_seeds)}
     planner_seeds = check_seeds(cfg, interaction_cfgs[first_seed])
     judged = verdicts_config(cfg, work, models, fidelity)
-    windows = candidates_config(cfg, work, models(first_seed), {
+    windows = candidates_config(cfg, work, {
         "planner": planner_seeds, "interaction benchmark": interaction_worlds(interaction_cfgs[first_seed]),
         "verdicts job": check_verdicts(judged, planner_seeds, interaction_cfgs[first_seed])})
     step = None

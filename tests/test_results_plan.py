@@ -163,6 +163,8 @@ def test_every_student_is_distilled_further_on_the_interactive_step_s_own_states
      r"the candidates' worlds 2000000..2000039 overlap the planner's 2000000..2000003; choose another seed_offset$"),
     ("results_preset.candidates=['seed_offset=2500000','reserved=[]']", r"^results_preset.candidates: seed_offset=2500000: "
      r"the candidates' worlds 2500000..2500039 overlap the verdicts job's"),
+    ("results_preset.candidates=['drive=[cv,student]']", r"^results_preset.candidates: drive=\['cv', 'student'\]: student "
+     r"needs trained models, and this job runs before any training; drive with sources that need none"),
     ("results_preset.candidates=['per_state=0']", r"^results_preset.candidates: per_state=0: must be an integer >= 1$"),
     ("results_preset.verdicts=['worlds=0']", r"^results_preset.verdicts: worlds=0: must be an integer >= 1$"),
     ("results_preset.fidelity_sources=[oracle]", r"^results_preset.fidelity_sources=\['oracle'\]: must be"),
