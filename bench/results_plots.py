@@ -72,7 +72,7 @@ def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
         if method != "admm":
             continue
         source = name.split(" ", 1)[0]  # the row name's gradient source (label)
-        suffix = compare.SOURCE_SUFFIX.get(source)
+        suffix = compare.scored_as(source)
         grad = (np.nan,) * 3 if suffix is None else gradients[names[suffix]]["ramp_grad_rel_err"]
         rows.append({"gradients": name, "method": method, "step_ms_median": r["step_ms_median"],
                      "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],

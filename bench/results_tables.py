@@ -17,8 +17,8 @@ from planner.compare import fmt
 from surrogate.evaluate import ENDS, metric
 
 METHODS = ("admm", "nnmpc")
-GRADIENT_ROWS = {"surrogate": "", "student": "_student", "constant velocity (baseline)": "_cv",
-                 "mean Jacobian (baseline)": "_mean"}  # the surrogate job's metrics per row: grad_rel_err, grad_rel_err_student, ...
+GRADIENT_ROWS = {"surrogate": "", "surrogate over the student's values (the planner's)": "_over_student",
+                 "student": "_student", "constant velocity (baseline)": "_cv", "mean Jacobian (baseline)": "_mean"}  # the surrogate job's metrics per row: grad_rel_err, grad_rel_err_student, ...
 
 
 def stream(seed: int, *names: str) -> np.random.Generator:

@@ -41,7 +41,8 @@ GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err",
 # (surrogate.evaluate)
 ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
 SOURCE_SUFFIX = {"surrogate": "", "student": "_student", "cv": "_cv"}  # a gradient source's d b_i/dZ scores in the surrogate
-# job's metrics (grad_rel_err, grad_rel_err_student, ...); the other sources are not scored there
+# job's metrics (grad_rel_err, grad_rel_err_student, ...; the surrogate over the student's values: scored_as); the other
+# sources are not scored there
 BASELINES = {"cv": "_cv", "mean Jacobian": "_mean"}  # the trivial gradient sources every row is shown against
 MEANS = ("t_merge", "C_max", "admm_iters_mean", "fallbacks", "b_imposed_max")  # episode-weighted over the pooled runs
 INTERACTION = ["react_corr", "react_gain", "react_hit", "react_corr_jac", "react_gain_jac", "react_hit_jac"]
@@ -67,6 +68,13 @@ def gradient_error(run: pd.Series | None, source: str) -> dict:
     return {col: np.nan if run is None else run.get(f"metrics.{metric(k, source, e)}", np.nan) for col, (k, e) in GRADIENT.items()}
 
 
+def scored_as(gradients: str, predictor: str | None = None) -> str | None:
+    """The surrogate job's metric suffix of a gradient source's d b_i/dZ scores over a predictor (by default its own:
+    the surrogate's, the student's values); None where the job does not score it."""
+    predictor = predictor or (predictor_of(gradients) if gradients in options("gradients") else gradients)
+    return "_over_student" if (gradients, predictor) == ("surrogate", "student") else SOURCE_SUFFIX.get(gradients)
+
+
 def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame,
              interaction_runs: pd.DataFrame) -> dict:
     """Accuracy columns of a row: its predictor's ADE (m), its gradient's error against teacher autodiff beside the
@@ -82,7 +90,7 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
     scored = latest(surrogate_runs, "source", "teacher")  # the surrogate job scores each source's d b_i/dZ on its states
     if gradients == "surrogate":
         row.update(metrics_of(scored, ("jac_rel_err",)))
-    suffix = SOURCE_SUFFIX.get(gradients)
+    suffix = scored_as(gradients, predictor)
     if suffix is not None:
         row.update(gradient_error(scored, suffix))
     for s in BASELINES.values():

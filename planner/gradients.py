@@ -87,19 +87,24 @@ class Surrogate(Source):
     """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule."""
 
     def __init__(self, name, predictor, surrogate):
+        from planner.jit_rollout import jit_values
+
         super().__init__(name, predictor)
         self.surrogate = surrogate
-        self.joint = surrogate.fused  # a fused export gives values and J from one file, J for a whole rollout in one call
         self.seen = (None, {})  # (history, {window bytes: next xy}) of the step being planned
         kernel = compiled_phi(predictor)
-        self.forward = kernel or (surrogate.phi if surrogate.fused else predictor.phi)
-        self.batched = surrogate.phi if kernel and surrogate.fused and same_network(kernel, surrogate) else self.forward
+        exported = surrogate.fused and (predictor is None or same_network(kernel or predictor.phi, surrogate))  # the
+        # export's forward pass is the predictor's own network (its teacher), not another's (predictor=student)
+        self.joint = exported  # values and J from one file, J for a whole rollout in one call
+        self.forward = kernel or (surrogate.phi if exported else predictor.phi)
+        self.batched = surrogate.phi if exported else self.forward
+        self.rollout = jit_values(predictor)  # the predictor's whole rollout in one compiled call, or None
 
     def phi(self, window):
-        """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the teacher's network in float64, fewer than
-        BATCHED new windows by a numba kernel (surrogate.kernels: ~2x faster than onnxruntime at batch 1), more in one
-        call of the fused export's forward pass where it is the same network (same_network; onnxruntime: ~2x faster
-        than the kernel from 10 windows on, equal to it within 1e-6 m); else the export's, else the predictor's. Each
+        """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the predictor's. Over the teacher, its network in
+        float64, fewer than BATCHED new windows by a numba kernel (surrogate.kernels: ~2x faster than onnxruntime at
+        batch 1), more in one call of the fused export's forward pass where it is the same network (same_network;
+        onnxruntime: ~2x faster than the kernel from 10 windows on, equal to it within 1e-6 m). Each
         distinct window of the step being planned is computed once, the new ones of a batch in one call: a step's
         candidates share most of theirs (mpc=interactive: 1.2 thousand distinct of 2.9 thousand windows a step on the
         bench's dense states; the first window of every rollout, and a closed-loop candidate's until its policy
@@ -123,8 +128,8 @@ class Surrogate(Source):
         all windows of the rollout in one call once its values are known."""
         from planner.jit_rollout import chain_rule
 
-        history = np.asarray(history, dtype=float)
-        values = self.values(history, np.asarray(ego_future, dtype=float)[None])[0]
+        history, ego_future = np.asarray(history, dtype=float), np.asarray(ego_future, dtype=float)
+        values = self.rollout(history, ego_future) if self.rollout else self.values(history, ego_future[None])[0]
         t_obs, t_p = len(history), len(values)
         track = np.concatenate([history, values])
         J = np.zeros((t_p, values[0].size, history.size))  # the observed window's J meets a zero derivative: left out

@@ -171,7 +171,23 @@ KERNELS = {"cv": lambda predictor: cv_params(), "student": student_params}  # `p
 def compiled_params(source):
     """`predicted`'s (Ws, bs, s) for a source that declares it runs compiled (planner.gradients: cv, the student); None
     for the others, whose Jacobians come from Python."""
-    return KERNELS[source.predictor.name](source.predictor) if source.compiled else None
+    return values_params(source.predictor) if source.compiled else None
+
+
+def values_params(predictor):
+    """`predicted`'s (Ws, bs, s) for a predictor whose rollout the compiled core writes (cv, the student), whichever
+    source differentiates it (the surrogate over the student: the values compiled, the Jacobians learned); else None."""
+    name = getattr(predictor, "name", None)
+    return KERNELS[name](predictor) if name in KERNELS else None
+
+
+def jit_values(predictor):
+    """values(history (T_obs, SLOTS, 2), ego (T_p, 2)) -> the rollout values (T_p, SLOTS, 2) m in one compiled call, for
+    the predictors of values_params; None for the others."""
+    params = values_params(predictor)
+    if params is None:
+        return None
+    return lambda history, ego: predicted(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))[0]
 
 
 def compiled_jacobian(source):

@@ -323,6 +323,12 @@ def gaps(s: Settings, history) -> list:
     return [(f"{where(back)}..{where(front)} m", front, back) for back, front in zip(cars[:-1], cars[1:])]
 
 
+def compiled(source) -> bool:
+    """Whether the candidate search runs in compiled calls for this source: its predictor's rollout is written as numba
+    kernels (cv, the student), whichever source gives the Z-step its Jacobians."""
+    return jit_rollout.values_params(source.predictor) is not None
+
+
 class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
     imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; Interactive.never: none), its
@@ -439,7 +445,7 @@ class Interactive:
         _, front, back, lean, clear, dv = zip(*combos)
         policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, self.tau, self.tau_x,
                        self.align, unseen(s, obs.history), self.k_y, dv)
-        params = jit_rollout.compiled_params(source)
+        params = jit_rollout.values_params(source.predictor)
         if params is None:
             values = source.react(obs.history, policy, H, len(combos))
             Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
@@ -453,14 +459,14 @@ class Interactive:
         """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
         one compiled call for a source the compiled core runs (jit_interactive.open_loop)."""
         ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
-        params = jit_rollout.compiled_params(source)
+        params = jit_rollout.values_params(source.predictor)
         if params is None:
             return source.values(obs.history, ego)
         return jit_interactive.open_loop(*params, np.asarray(obs.history, float), np.ascontiguousarray(ego))
 
     def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
         """The predictor's verdict on each open-loop candidate (K, H) (predict, verdicts)."""
-        return self.verdicts(s, obs, self.predict(obs, source, Z), Delta, alpha, Z, source.compiled)
+        return self.verdicts(s, obs, self.predict(obs, source, Z), Delta, alpha, Z, compiled(source))
 
     def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
@@ -528,10 +534,10 @@ class Interactive:
     def ranked(self, s: Settings, obs: Observation, warm, source):
         """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, T_p), alpha (K, T_p),
         Z (K, 4T_p), verdicts), each in that order."""
-        names, Delta, alpha, Z = self.plans(s, obs, warm, source.compiled)
+        names, Delta, alpha, Z = self.plans(s, obs, warm, compiled(source))
         judged = self.judge(s, obs, source, Delta, alpha, Z)
         c_names, c_Delta, c_alpha, c_Z, c_values = self.chased(s, obs, source)
-        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z, source.compiled)
+        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z, compiled(source))
         for other in source.judges:  # each closed-loop candidate as driven against the source, its path then held fixed
             worse = [self.foreseen(s, obs, self.predict(obs, other, z)) for z in (Z, c_Z) if len(z)]
             b, brakes = (np.concatenate(x) for x in zip(*worse))

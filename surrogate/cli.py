@@ -103,16 +103,20 @@ def time_autodiff(cfg, window):
     return out
 
 
-def student_jacobian(cfg, W) -> dict:
-    """{"_student": the distilled student's local Jacobians on windows W} when models_dir holds one, so that its d b_i / dZ
-    is scored on the same planning states as the surrogate's; {} otherwise, and when the student is the surrogate's source."""
+def student_jacobians(cfg, W, surrogate, history, ego_future) -> dict:
+    """When models_dir holds a distilled student (and it is not the surrogate's source): {"_student": its local Jacobians
+    on windows W (n, T_p, ...), so that its d b_i / dZ is scored on the same planning states as the surrogate's;
+    "_over_student": the planner's default pairing, the student's own rollout (n, T_p, ...) with the surrogate's
+    Jacobians on its windows}. {} otherwise."""
     if cfg.source == "student":
         return {}
     try:
         student = instantiate_user(cfg.predictor, name="student")
     except UserError:
         return {}
-    return {"_student": student.phi_jac(W)[1]}
+    n, W_s = len(history), jacobians.planner_windows(student.phi, history, ego_future)
+    return {"_student": per_state(n, student.phi_jac(W)[1]),
+            "_over_student": tuple(per_state(n, a) for a in (W_s, student.phi(W_s), surrogate.jac(W_s)))}
 
 
 @guarded
@@ -178,9 +182,10 @@ def run(cfg: DictConfig) -> dict:
 
         R = cfg.paper.safety.r + cfg.paper.safety.r_i + cfg.paper.safety.eps
         n = len(history)
-        J_hats = {"": J_hat, "_mean": J_mean, "_cv": J_cv, **student_jacobian(cfg, W)}
-        scores = evaluate.gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J),
-                                            {k: per_state(n, v) for k, v in J_hats.items()}, history, ego_future, R)
+        J_hats = {"": J_hat, "_mean": J_mean, "_cv": J_cv}
+        J_hats = {k: per_state(n, v) for k, v in J_hats.items()} | student_jacobians(cfg, W, surrogate, history, ego_future)
+        scores = evaluate.gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J), J_hats,
+                                            history, ego_future, R)
         metrics.update({evaluate.metric(k, suffix, e): x for suffix, s in scores.items() for k, v in s.items()
                         for e, x in zip(evaluate.ENDS, v)})
 
@@ -200,7 +205,9 @@ def run(cfg: DictConfig) -> dict:
                        for k in evaluate.HEADLINE) +
              f" local J {metrics['jac_rel_err']:.4f} ({metrics['jac_rel_err_cv']:.4f}, {metrics['jac_rel_err_mean']:.4f}); "
              + (f"the student's ramp_grad_rel_err {metrics['ramp_grad_rel_err_student']:.3f}, ramp_react_rel_err "
-                f"{metrics['ramp_react_rel_err_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +
+                f"{metrics['ramp_react_rel_err_student']:.3f}; over the student's values (the planner's default) "
+                f"ramp_grad_rel_err {metrics['ramp_grad_rel_err_over_student']:.3f}, ramp_react_rel_err "
+                f"{metrics['ramp_react_rel_err_over_student']:.3f}; " if "grad_rel_err_student" in metrics else "") +
              f"{metrics['forward_us']:.0f} us per Jacobian vs {metrics['source_autodiff_us']:.0f} us {cfg.source} autodiff; "
              f"{100 * metrics['outside_box_share']:.1f}% of the test windows outside the training box")
     return metrics

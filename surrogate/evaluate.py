@@ -96,14 +96,17 @@ def gradient_accuracy(windows, nexts, J, J_hats: dict, histories, ego_futures, R
     weighted by the truth's size (`weighted`).
 
     windows (n, T_p, T_obs, SLOTS, 2), nexts (n, T_p, SLOTS, 2) and the exact J (n, T_p, SLOTS*2, T_obs*SLOTS*2) are the source's on the
-    windows its rollout visits; each of J_hats {name: (n, T_p, SLOTS*2, T_obs*SLOTS*2)} replaces J in the same rollout.
+    windows its rollout visits; each of J_hats {name: (n, T_p, SLOTS*2, T_obs*SLOTS*2)} replaces J in the same rollout, or
+    {name: (windows, nexts, J)} is another predictor's rollout with Jacobians on its windows (the surrogate over the
+    student's values), scored against the source's: its values' error counts too.
     """
     scores = {name: {} for name in J_hats}
     norms = {name: {} for name in J_hats}  # key: [(||error||, ||truth||) per state]
+    rollouts = {name: hat if isinstance(hat, tuple) else (windows, nexts, hat) for name, hat in J_hats.items()}
     for i, (history, ego_future) in enumerate(zip(histories, ego_futures)):
         truth = views(*dZ(replay(windows[i], nexts[i], J[i]), history, ego_future, R))
-        for name, J_hat in J_hats.items():
-            hat = views(*dZ(replay(windows[i], nexts[i], J_hat[i]), history, ego_future, R))
+        for name, (w, nxt, J_hat) in rollouts.items():
+            hat = views(*dZ(replay(w[i], nxt[i], J_hat[i]), history, ego_future, R))
             for key, exact in truth.items():
                 scores[name].setdefault(f"{key}_cosine", []).append(cosine(hat[key], exact))
                 scores[name].setdefault(f"{key}_rel_err", []).append(relative(hat[key], exact))

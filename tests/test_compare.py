@@ -28,9 +28,9 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, caplog):
     caplog.set_level(logging.INFO)
     base = {"method": "admm", "zstep": "sqp", "scenario": "two_lane"}
     for merged, ms in [(1, 10.0), (0, 30.0), (1, 20.0)]:
-        log("planner", {**base, "gradients": "surrogate"}, {"merged": merged, "collision": 0, "step_ms_median": ms,
+        log("planner", {**base, "gradients": "surrogate", "predictor": "teacher"}, {"merged": merged, "collision": 0, "step_ms_median": ms,
                                                             "step_ms_p95": 2 * ms, "t_merge": 9, "C_max": 60, "d_min_m": 4.0 + ms / 100})
-    log("planner", {**base, "gradients": "surrogate"}, {"episodes": 10, "merged": 0.5, "collision": 0.1, "step_ms_median": 40.0,
+    log("planner", {**base, "gradients": "surrogate", "predictor": "teacher"}, {"episodes": 10, "merged": 0.5, "collision": 0.1, "step_ms_median": 40.0,
                                                         "step_ms_p95": 80.0, "t_merge": 12, "C_max": 70, "d_min_m": 3.9})
     log("planner", {**base, "gradients": "teacher"}, {"merged": 1, "collision": 0, "step_ms_median": 900.0, "step_ms_p95": 990.0,
                                                       "t_merge": 8, "C_max": 55, "d_min_m": 4.2})
@@ -70,8 +70,11 @@ def test_rows_split_by_setup_and_accuracy_follows_the_predictor(store):
         log("planner", {**base, "gradients": "cv", "predictor": "cv", "max_steps": steps, "mpc.admm.rho": rho}, ok)
     log("planner", {**base, "gradients": "surrogate", "predictor": "teacher", "max_steps": "60", "mpc.admm.rho": "100"},
         {**ok, "episodes": 40, "merged": 0.75})
+    log("planner", {**base, "gradients": "surrogate", "max_steps": "60", "mpc.admm.rho": "100"}, ok)  # its default predictor
     log("distill", {"model": "teacher"}, {"ade_1step_m": 0.002, "ade_rollout_m": 0.04, "cv_ade_1step_m": 0.007,
                                           "cv_ade_rollout_m": 0.107})
+    log("distill", {"model": "student"}, {"ade_1step_m": 0.003, "ade_rollout_m": 0.05})
+    log("surrogate", {"source": "teacher"}, {"grad_rel_err": 0.2, "grad_rel_err_over_student": 0.25})
     log("interaction", {"source": "cv"}, {"react_corr": 0.0, "react_corr_jac": 0.0, "react_hit": 0.1})
     log("interaction", {"source": "surrogate"}, {"react_corr": 0.6, "react_corr_jac": 0.3, "react_hit": 0.4})
     df = run(compose_cfg("compare", [f"out_dir={store}"]))
@@ -80,8 +83,11 @@ def test_rows_split_by_setup_and_accuracy_follows_the_predictor(store):
     assert cv.loc[("2", "100"), "n_runs"] == 1 and cv.loc[("60", "0.0"), "n_runs"] == 1
     assert (cv["ade_rollout_m"] == 0.107).all() and cv["react_corr_jac"].eq(0.0).all()  # constant velocity's, not the teacher's
     assert cv["grad_cosine"].isna().all()
-    sur = df[df["gradients"] == "surrogate"].iloc[0]
+    sur = df[(df["gradients"] == "surrogate") & (df["predictor"] == "teacher")].iloc[0]
     assert sur["ade_rollout_m"] == 0.04 and sur["react_corr"] == 0.6 and sur["react_corr_jac"] == 0.3
+    assert sur["grad_rel_err"] == 0.2
+    paired = df[(df["gradients"] == "surrogate") & (df["predictor"] != "teacher")].iloc[0]  # the student's values
+    assert paired["ade_rollout_m"] == 0.05 and paired["grad_rel_err"] == 0.25
     lo, hi = sur["merged_lo"], sur["merged_hi"]  # Wilson, 30 of 40: 0.5981 .. 0.8581
     assert lo == pytest.approx(0.5981, abs=1e-4) and hi == pytest.approx(0.8581, abs=1e-4)
     assert (store / "compare.png").read_bytes()[:4] == b"\x89PNG"

@@ -26,7 +26,8 @@ EXPECTED = {
     "fd": (False, False, False, True, True, "teacher"),
     "oracle": (False, False, True, True, False, "oracle"),
     "student": (True, False, False, False, True, "student"),
-    "surrogate": (True, False, False, False, True, "teacher"),  # joint: the default export is fused
+    "surrogate": (False, False, False, False, True, "student"),  # the student's values: the fused export's forward
+    # pass is the teacher's, so values and J do not come from one call
     "teacher": (False, True, False, True, True, "teacher"),
 }
 

@@ -194,6 +194,39 @@ def test_the_baselines_and_the_reaction_split_on_a_constructed_state():
     assert np.allclose(scores["cv"]["grad_rel_err"][1:], [np.mean(shares) - half, np.mean(shares) + half])
 
 
+def test_a_pairing_is_scored_on_its_own_rollout_against_the_sources():
+    """Another predictor's values (the source's linear map plus a bias on the others' next positions) with the source's
+    own local Jacobian at that rollout's windows: its score is the relative error of the d b_i / d Z it composes from
+    its own values, computed here by hand; with no bias it scores 0."""
+    from core.rollout import b_i_jacobian, rollout_jacobian
+    from surrogate.evaluate import gradient_accuracy
+
+    rng = np.random.default_rng(1)
+    T_p, R = 8, 3.95
+    A = rng.normal(0.0, 0.05, (SLOTS * 2, T_OBS * SLOTS * 2))
+    A[:, -SLOTS * 2:] += np.eye(SLOTS * 2)
+    bias = np.r_[0.0, 0.0, rng.normal(0.0, 0.3, (SLOTS - 1) * 2)]  # the ego slot follows the plan whatever phi says
+    histories, egos = rng.normal(0.0, 3.0, (3, T_OBS, SLOTS, 2)), rng.normal(0.0, 3.0, (3, T_p, 2))
+
+    def recorded(c):
+        """(windows, nexts, J) (n, T_p, ...) of the rollouts of next = A @ window + c, and each state's d b_i / d Z."""
+        phi_jac = lambda w: ((A @ w.reshape(-1) + c).reshape(1, SLOTS, 2), A[None])
+        out, truths = [], []
+        for h, e in zip(histories, egos):
+            seen = []
+            values, grads = rollout_jacobian(lambda w: seen.append(w[0].copy()) or phi_jac(w), h, e)
+            out.append((np.stack(seen), np.stack([phi_jac(w[None])[0][0] for w in seen]), np.broadcast_to(A, (T_p, *A.shape))))
+            truths.append(b_i_jacobian(values, grads, R)[1])
+        return tuple(map(np.stack, zip(*out))), truths
+
+    (W, nexts, J), truth = recorded(0.0)
+    pair, biased = recorded(bias)
+    scores = gradient_accuracy(W, nexts, J, {"pair": pair, "same": recorded(0.0)[0]}, histories, egos, R)
+    by_hand = [np.linalg.norm(b - t) / np.linalg.norm(t) for b, t in zip(biased, truth)]
+    assert scores["pair"]["grad_rel_err"][0] == pytest.approx(np.mean(by_hand)) and np.mean(by_hand) > 0.01
+    assert scores["same"]["grad_rel_err"][0] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_the_weighted_error_pools_states_by_the_size_of_their_truth():
     """Two states, a tiny reaction missed by 5x and a large one by 10%: the mean of ratios says 2.55, the weighted error
     (1.5 / 10.1) says what the error is where the reaction is; its interval, resampling the states, spans both states'
@@ -341,3 +374,27 @@ def test_outside_its_training_box_the_surrogate_reads_the_nearest_state_it_knows
         assert (net(slow) - net(fast)).abs().max() < 1e-3  # float32 rounding of the lane change's accelerations
         assert (free(slow) - free(fast)).abs().max() > 1.0
     assert not net.outside(inside).any() and net.outside(slow).all() and net.outside(fast).all()
+
+
+def test_beside_a_student_the_job_scores_the_planners_pairing_on_the_students_own_rollout(tiny_models, tiny_dataset,
+                                                                                         tmp_path, caplog):
+    """With a teacher and a student in models_dir, the job also scores the student's exact Jacobians on the teacher's
+    rollout and the planner's default pairing (gradients=surrogate: the student's values, the surrogate's J on the
+    student's own windows) against teacher autodiff, and prints the pairing."""
+    import logging
+
+    from surrogate.cli import run
+
+    caplog.set_level(logging.INFO)
+    models_dir = tiny_models[0]
+    for f in ("teacher.ckpt", "student.ckpt"):
+        (tmp_path / f).symlink_to(models_dir / f)
+    m = run(compose_cfg("surrogate", [f"dataset_dir={tiny_dataset}", f"models_dir={tmp_path}", f"out_dir={tmp_path / 'out'}",
+                                      "data.dataset_windows=200", "data.plan_states=20", "data.val_dataset_windows=50",
+                                      "data.val_plan_states=5", "data.test_plan_states=8", "trainer.max_epochs=1",
+                                      "timing.repeats=1", "timing.budget_s=0.01", "timing.predictors=[]"]))
+    for suffix in ("_student", "_over_student"):
+        lo, mean, hi = (m[f"grad_rel_err{suffix}{e}"] for e in ("_lo", "", "_hi"))
+        assert np.isfinite([lo, mean, hi]).all() and lo <= mean <= hi and mean > 0
+    assert m["grad_rel_err_over_student"] != m["grad_rel_err"]  # its own rollout, not the teacher's
+    assert "over the student's values" in caplog.text

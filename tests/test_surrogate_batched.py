@@ -13,7 +13,7 @@ from test_surrogate import smooth_student
 from bench.states import collect
 from conftest import compose_cfg
 from core.rollout import SLOTS, T_OBS, ego_xy, rollout, rollout_jacobian
-from distill.models import TorchPredictor
+from distill.models import StudentPredictor, TorchPredictor
 from planner.gradients import Surrogate
 from surrogate import kernels, models
 from surrogate.export import export
@@ -140,3 +140,22 @@ def test_a_batch_of_new_windows_goes_to_the_export_only_when_it_is_the_teachers_
         calls = counted(surrogate, monkeypatch)
         np.testing.assert_allclose(source.values(history, plans), want, rtol=0, atol=1e-5)
         assert calls["next"] == ([BATCHED] * (plans.shape[1] - 1) if asked else [])  # the shared first window: the kernel
+
+
+def test_over_another_predictor_the_values_are_that_predictors_and_the_jacobians_the_exports(exported, states, monkeypatch):
+    """The planner's default pairing: the surrogate's learned J with the student's values. The fused export's forward
+    pass (another network) is never called; the values are the student's own rollout, and d values / d ego the
+    export's J at that rollout's windows, composed by the chain rule."""
+    student = StudentPredictor(smooth_student(seed=3))
+    source = Surrogate("surrogate", student, exported)
+    assert not source.joint  # the export's values are not this predictor's
+    calls = counted(exported, monkeypatch)
+    for history, ego in states[:3]:
+        want = rollout_jacobian(lambda w: (student.phi(w), exported.jac(w)), history, ego)
+        values, grads = source.jacobian(history, ego)
+        plans = np.stack([ego, ego + 0.5])
+        own = rollout(student.phi, np.stack([history, history]), plans)  # the student's rollouts in numpy
+        np.testing.assert_allclose(values, own[0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(grads, want[1], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(source.values(history, plans), own, rtol=0, atol=1e-9)
+    assert calls["next"] == []
