@@ -98,7 +98,7 @@ class Surrogate(Source):
         self.joint = exported  # values and J from one file, J for a whole rollout in one call
         self.forward = kernel or (surrogate.phi if exported else predictor.phi)
         self.batched = surrogate.phi if exported else self.forward
-        self.rollout = jit_values(predictor)  # the predictor's whole rollout in one compiled call, or None
+        self.rollouts = jit_values(predictor)  # the predictor's rollouts of a batch of plans in one compiled call, or None
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the predictor's. Over the teacher, its network in
@@ -116,6 +116,12 @@ class Surrogate(Source):
             memo.update(zip(new, (self.batched if len(new) >= BATCHED else self.forward)(window[list(new.values())])))
         return np.array([memo[k] for k in keys]).reshape(len(keys), *window.shape[2:])  # np.stack: 3x the cost
 
+    def values(self, history, ego_futures):
+        """Source.values, in one compiled call where the predictor's rollout is compiled (the student's)."""
+        if self.rollouts is None:
+            return super().values(history, ego_futures)
+        return self.rollouts(history, ego_futures)
+
     def react(self, history, ego_next, T, B):
         """Source.react with the memo of windows kept for one history (a step): a closed loop's does not grow."""
         history = np.asarray(history, dtype=float)
@@ -129,7 +135,7 @@ class Surrogate(Source):
         from planner.jit_rollout import chain_rule
 
         history, ego_future = np.asarray(history, dtype=float), np.asarray(ego_future, dtype=float)
-        values = self.rollout(history, ego_future) if self.rollout else self.values(history, ego_future[None])[0]
+        values = self.values(history, ego_future[None])[0]
         t_obs, t_p = len(history), len(values)
         track = np.concatenate([history, values])
         J = np.zeros((t_p, values[0].size, history.size))  # the observed window's J meets a zero derivative: left out

@@ -11,6 +11,7 @@ from numba.typed import List
 
 from core.rollout import rollout_jacobian
 from planner import safety
+from planner.jit_interactive import open_loop
 from planner.jit_linalg import matmul, matvec
 
 
@@ -182,12 +183,12 @@ def values_params(predictor):
 
 
 def jit_values(predictor):
-    """values(history (T_obs, SLOTS, 2), ego (T_p, 2)) -> the rollout values (T_p, SLOTS, 2) m in one compiled call, for
-    the predictors of values_params; None for the others."""
+    """values(history (T_obs, SLOTS, 2), egos (B, T, 2)) -> the rollout values (B, T, SLOTS, 2) m of B fixed ego plans in
+    one compiled call (jit_interactive.open_loop), for the predictors of values_params; None for the others."""
     params = values_params(predictor)
     if params is None:
         return None
-    return lambda history, ego: predicted(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(ego, float))[0]
+    return lambda history, egos: open_loop(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(egos, float))
 
 
 def compiled_jacobian(source):
