@@ -277,6 +277,13 @@ def multi_start(timings: dict) -> list:
     return [(name, paper(name)) for name in timings if paper(name) != name and paper(name) in timings]
 
 
+def pairs(timings: dict, st: DictConfig) -> list:
+    """The (a, b) of the ratios a/b to print and log: st.ratios, each also of the multi-start rows where a and b both have
+    one (surrogate-interactive / student-interactive), then every multi-start row over its paper step (multi_start)."""
+    extended = [(f"{a}-{m}", f"{b}-{m}") for a, b in st.ratios for m in MULTI if {f"{a}-{m}", f"{b}-{m}"} <= timings.keys()]
+    return [*map(tuple, st.ratios), *extended, *multi_start(timings)]
+
+
 def summary(timings: dict, st: DictConfig) -> dict:
     """MLflow metrics: <source>_ms_median, <source>_ms_p95, <source>_ms_p99 (the 200 ms control period's test; on a few
     dozen states, near their slowest), the first two also per scenario family (<source>_ms_median_<family>),
@@ -290,7 +297,7 @@ def summary(timings: dict, st: DictConfig) -> dict:
         for family in np.unique(families):  # scenario families apart: dense states plan against more cars at once
             of = ms[families == family]
             out.update({f"{name}_ms_median_{family}": float(np.median(of)), f"{name}_ms_p95_{family}": float(np.percentile(of, 95))})
-    for a, b in [*st.ratios, *multi_start(timings)]:
+    for a, b in pairs(timings, st):
         if a in timings and b in timings:
             out[f"ratio_{a}_{b}"] = out[f"{a}_ms_median"] / out[f"{b}_ms_median"]
     for name in st.ipopt:
@@ -318,7 +325,7 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
     for name in timings:
         lines.append(f"{name:>19} " + " ".join(f"{metrics[f'{name}_ms_median_{f}']:>13.1f} / {metrics[f'{name}_ms_p95_{f}']:<8.1f}"
                                                if f"{name}_ms_median_{f}" in metrics else f"{'-':>24}" for f in families))
-    for a, b in [*st.ratios, *multi_start(timings)]:
+    for a, b in pairs(timings, st):
         key = f"ratio_{a}_{b}"
         lines.append(f"{a}/{b}: " + (f"{metrics[key]:.1f}x" if key in metrics else f"n/a ({b if a in srcs else a} missing)"))
     firsts = {k.removesuffix("_first_ms"): v for k, v in metrics.items() if k.endswith("_first_ms")}

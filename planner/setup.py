@@ -5,7 +5,7 @@ from pathlib import Path
 from hydra.utils import get_class, get_object
 from omegaconf import DictConfig
 
-from core.jobs import UserError, build, job_config
+from core.jobs import MissingModel, UserError, build, job_config
 from distill import certificate
 from planner import closed_loop, mpc
 from planner.gradients import Recording, Source, WorldModel
@@ -47,7 +47,13 @@ def setup(cfg: DictConfig):
     if cfg.world == "predictor" and not scenario.predictor_moves:
         raise UserError(f"world=predictor moves the others by the predictor, but scenario={scenario.name}'s cars drive "
                         "themselves: use world=reactive")
-    source = build(cfg.gradients)
+    try:
+        source = build(cfg.gradients)
+    except MissingModel as e:
+        if cfg.gradients.name == "surrogate" and cfg.gradients.predictor.name == "student":
+            raise MissingModel(f"{e} (gradients=surrogate plans on the student's values; predictor=teacher for the "
+                               "teacher's)") from None
+        raise
     check_window(cfg, source.predictor)
     source.judges = judges(cfg, source)
     return scenario, source, settings(cfg, scenario)

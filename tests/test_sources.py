@@ -75,3 +75,12 @@ def test_every_option_builds_a_source_that_does_what_it_declares(name, models_di
             make("two_lane", [f"gradients={name}", f"models_dir={empty}"])
     else:
         make("two_lane", [f"gradients={name}", f"models_dir={empty}"])
+
+
+def test_the_surrogate_without_a_student_names_the_missing_model_and_the_teacher_alternative(models_dir, tmp_path):
+    for f in ("teacher.ckpt", "surrogate.onnx"):
+        shutil.copy(models_dir / f, tmp_path / f)
+    with pytest.raises(UserError, match=r"student\.ckpt not found: run `distill model=student` \(gradients=surrogate plans "
+                                        r"on the student's values; predictor=teacher for the teacher's\)$"):
+        make("two_lane", ["gradients=surrogate", f"models_dir={tmp_path}"])
+    assert make("two_lane", ["gradients=surrogate", "predictor=teacher", f"models_dir={tmp_path}"])[1].predictor.name == "teacher"

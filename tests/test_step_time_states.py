@@ -63,6 +63,18 @@ def test_each_multi_start_row_is_set_against_its_sources_paper_step():
     assert "student-interactive/student: 4.0x" in shown
 
 
+def test_a_listed_ratio_is_also_taken_between_the_two_sources_multi_start_rows_where_both_have_one():
+    row = lambda ms: (np.full(4, ms), 5.0, 0, np.zeros(4), np.array(["dense"] * 4))
+    timings = {"surrogate": row(6.0), "student": row(3.0), "surrogate-interactive": row(15.0),
+               "student-interactive": row(10.0), "surrogate-courteous": row(9.0), "teacher": row(300.0)}
+    st = OmegaConf.create({"ratios": [["surrogate", "student"], ["teacher", "surrogate"]], "ipopt": []})
+    assert step_time.pairs(timings, st) == [("surrogate", "student"), ("teacher", "surrogate"),
+                                            ("surrogate-interactive", "student-interactive"),  # not courteous: one row
+                                            ("surrogate-interactive", "surrogate"), ("student-interactive", "student"),
+                                            ("surrogate-courteous", "surrogate")]
+    assert step_time.summary(timings, st)["ratio_surrogate-interactive_student-interactive"] == 1.5
+
+
 def test_the_split_sorts_every_part_into_one_of_three():
     ms = {"ADMM solve, one compiled call (numba + DAQP)": 3.0, "onnxruntime": 2.0, "surrogate/models.py": 0.5,
           "planner/step.py": 1.0, "numpy / builtins": 0.25, "daqp": 0.125}
