@@ -50,7 +50,7 @@ def setup(cfg: DictConfig):
     try:
         source = build(cfg.gradients)
     except MissingModel as e:
-        if cfg.gradients.name == "surrogate" and cfg.gradients.predictor.name == "student":
+        if cfg.gradients.name == "surrogate" and cfg.gradients.predictor.get("name") == "student":
             raise MissingModel(f"{e} (gradients=surrogate plans on the student's values; predictor=teacher for the "
                                "teacher's)") from None
         raise
