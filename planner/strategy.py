@@ -459,10 +459,8 @@ class Interactive:
         """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
         one compiled call for a source the compiled core runs (jit_interactive.open_loop)."""
         ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
-        params = jit_rollout.values_params(source.predictor)
-        if params is None:
-            return source.values(obs.history, ego)
-        return jit_interactive.open_loop(*params, np.asarray(obs.history, float), np.ascontiguousarray(ego))
+        rollouts = jit_rollout.jit_values(source.predictor)
+        return source.values(obs.history, ego) if rollouts is None else rollouts(obs.history, ego)
 
     def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
         """The predictor's verdict on each open-loop candidate (K, H) (predict, verdicts)."""

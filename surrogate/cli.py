@@ -182,8 +182,8 @@ def run(cfg: DictConfig) -> dict:
 
         R = cfg.paper.safety.r + cfg.paper.safety.r_i + cfg.paper.safety.eps
         n = len(history)
-        J_hats = {"": J_hat, "_mean": J_mean, "_cv": J_cv}
-        J_hats = {k: per_state(n, v) for k, v in J_hats.items()} | student_jacobians(cfg, W, surrogate, history, ego_future)
+        J_hats = {k: per_state(n, v) for k, v in {"": J_hat, "_mean": J_mean, "_cv": J_cv}.items()} | \
+            student_jacobians(cfg, W, surrogate, history, ego_future)
         scores = evaluate.gradient_accuracy(per_state(n, W), per_state(n, source.phi(W)), per_state(n, J), J_hats,
                                             history, ego_future, R)
         metrics.update({evaluate.metric(k, suffix, e): x for suffix, s in scores.items() for k, v in s.items()
