@@ -457,7 +457,7 @@ class Interactive:
     @staticmethod
     def predict(obs: Observation, source, Z):
         """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
-        one compiled call for a source the compiled core runs (jit_interactive.open_loop)."""
+        one compiled call where the predictor's rollout is compiled (jit_rollout.jit_values), whatever the source."""
         ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
         rollouts = jit_rollout.jit_values(source.predictor)
         return source.values(obs.history, ego) if rollouts is None else rollouts(obs.history, ego)
