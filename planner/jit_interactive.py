@@ -1,6 +1,6 @@
 """mpc=interactive's candidate search (planner.strategy.Interactive) compiled for the predictors the compiled core runs
 itself (cv and the student: planner.jit_rollout.compiled_params): the open-loop candidates' bicycle rollouts (`track`,
-`simulate`), every candidate's predicted rollout with its plan fixed (`open_loop`) or answering the predictor step by
+planner.jit_bicycle), every candidate's predicted rollout with its plan fixed (`open_loop`) or answering the predictor step by
 step (`chase`: strategy.Chase against the predictor's recursion), and the verdicts on them (`verdicts`), each one numba
 call. In Python these were ~2,000 numpy calls on arrays of tens of elements a step, most of the interactive step's time.
 The student runs once per distinct window (`alike`): the candidates share most of theirs.
@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit
 
 from data.drivers import idm
+from planner.jit_bicycle import advance
 from planner.jit_chase import chase_step
 from planner.jit_linalg import rmatvec
 
@@ -34,29 +35,6 @@ def drive(z, y_target, a, car):
     a = max(min(max(a, a_lo), a_hi), -v / dt)
     advance(z, d, a, l_f, l_r, dt)
     return d, a
-
-
-@njit(cache=True)
-def advance(z, d, a, l_f, l_r, dt):
-    """data.bicycle.step for one car: its state z (4,) one step of dt (s) on under steering d (rad) and acceleration a
-    (m/s^2), written into z; l_f, l_r (m) its axles' distances from the centre of mass."""
-    x, y, psi, v = z[0], z[1], z[2], z[3]
-    beta = math.atan(l_r / (l_f + l_r) * math.tan(d))
-    z[0] = x + dt * v * math.cos(psi + beta)
-    z[1] = y + dt * v * math.sin(psi + beta)
-    z[2] = psi + dt * v / l_r * math.sin(beta)
-    z[3] = v + dt * a
-
-
-@njit(cache=True)
-def simulate(z0, Delta, alpha, car):
-    """planner.mpc.simulate of one plan: the states Z (4H,) that the controls Delta, alpha (H,) (rad, m/s^2) drive
-    from z0 (4,); car: drive's (its boxes unused: the controls are applied as they are)."""
-    z, Z = z0.copy(), np.empty(4 * len(Delta))
-    for t in range(len(Delta)):
-        advance(z, Delta[t], alpha[t], car[0], car[1], car[2])
-        Z[4 * t:4 * t + 4] = z
-    return Z
 
 
 @njit(cache=True)

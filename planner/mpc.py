@@ -15,7 +15,7 @@ from core.rollout import b_i
 from core.validate import Bool, Int, OneOf, Range, Real, check_fields, rule
 from data import bicycle
 from data.world import Road, steer_to
-from planner import admm, cost, dynamics, jit_admm, jit_rollout, jit_zstep, safety
+from planner import admm, cost, dynamics, jit_admm, jit_bicycle, jit_rollout, jit_zstep, safety
 from planner.jit_zstep import CompiledSafety
 from planner.safety import Safety
 
@@ -139,13 +139,11 @@ class StepResult(NamedTuple):
 
 def simulate(z0, Delta, alpha, params):
     """Nonlinear bicycle rollout of the controls Delta, alpha (..., T_p) from z0 (4,): Z (..., 4T_p) stacking
-    z(1..T_p); plans rolled out together get the numbers each gets alone (numpy's elementwise maths)."""
-    u = np.stack([np.asarray(Delta, float), np.asarray(alpha, float)], -1)  # (..., T_p, 2)
-    z, out = np.asarray(z0, float), []  # broadcast against u's plans by the first step
-    for t in range(u.shape[-2]):
-        z = bicycle.step(z, u[..., t, :], params)
-        out.append(z)
-    return np.concatenate(out, -1)
+    z(1..T_p), each plan as alone (compiled: planner.jit_bicycle.simulate; data.bicycle.step's numbers to rounding)."""
+    D, a = np.broadcast_arrays(np.asarray(Delta, float), np.asarray(alpha, float))
+    flat = lambda u: np.ascontiguousarray(u.reshape(-1, u.shape[-1]))
+    Z = jit_bicycle.simulate(np.asarray(z0, float), flat(D), flat(a), params.l_f, params.l_r, params.dt)
+    return Z.reshape(D.shape[:-1] + (4 * D.shape[-1],))
 
 
 def shift(plan: admm.ADMMState):
@@ -183,20 +181,16 @@ def lane_plan(s: Settings, z0, a):
 
 def lane_plans(s: Settings, z0, accels):
     """lane_plan for each acceleration of accels (n,) (m/s^2), rolled out together, with the rollouts: Delta, alpha
-    (n, T_p) and Z (n, 4T_p) as simulate's; each plan's numbers are those it has alone (numpy's elementwise maths)."""
+    (n, T_p) and Z (n, 4T_p) as simulate's, each plan as alone (compiled: planner.jit_bicycle.lane_plans, by
+    data.world.steer_to's law and gains)."""
     z = np.asarray(z0, float)
     lane_y = s.road.centre(s.road.lane_of(z[1]))
     if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
         lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
     a = np.clip(np.asarray(accels, float), *s.a_box)
-    z, u = np.repeat(z[None], len(a), 0), np.empty((len(a), 2))
-    Delta, alpha, Z = np.empty((len(a), s.T_p)), np.empty((len(a), s.T_p)), np.empty((len(a), 4 * s.T_p))
-    for t in range(s.T_p):
-        Delta[:, t] = u[:, 0] = np.clip(steer_to(z, lane_y, s.params), *s.delta_box)
-        stop = -z[:, 3] / s.params.dt
-        alpha[:, t] = u[:, 1] = np.where(stop > a, stop, a)  # builtins' max(a, stop), ties and NaN alike
-        z = Z[:, 4 * t:4 * t + 4] = bicycle.step(z, u, s.params)
-    return Delta, alpha, Z
+    p = s.params
+    return jit_bicycle.lane_plans(z, float(lane_y), np.ascontiguousarray(a, float), s.T_p, p.l_f, p.l_r, p.dt,
+                                  *map(float, s.delta_box), *steer_to.__defaults__)
 
 
 def brake_plan(s: Settings, z0):

@@ -384,7 +384,7 @@ class Interactive:
 
     def plans(self, s: Settings, obs: Observation, warm, compiled: bool = False):
         """(names, Delta (K, H), alpha (K, H), Z (K, 4H)) of every open-loop candidate over the
-        horizon H; compiled: their bicycle rollouts by jit_interactive's track and simulate (the numbers to rounding),
+        horizon H; compiled: their bicycle rollouts by jit_interactive's track (the numbers to rounding),
         as for the sources the compiled core runs."""
         H, y0 = max(self.horizon, s.T_p), obs.z0[1]
         lane_y = s.road.centre(s.road.lane_of(y0))
@@ -418,8 +418,7 @@ class Interactive:
         and v. So the plan applied last step is judged again whole (a "merge after 3" chosen now is "merge after 2"
         next step, which no other candidate offers); holding its last controls instead would turn the ego in a circle."""
         prev = warm_start(s, obs, warm)
-        z0 = np.asarray(obs.z0, float)
-        z_p = jit_interactive.simulate(z0, prev.Delta, prev.alpha, car(s, self.k_y)) if compiled else simulate(z0, prev.Delta, prev.alpha, s.params)
+        z_p = simulate(obs.z0, prev.Delta, prev.alpha, s.params)
         if H == s.T_p:
             return prev.Delta[None], prev.alpha[None], z_p[None]
         end = z_p[-4:]
