@@ -15,9 +15,9 @@ from core.jobs import CONF_DIR, UserError, atomic_file, options
 from core.rollout import react, rollout, rollout_jacobian
 from core.validate import TRAINED_PREDICTORS
 from distill.models import probe_window
+from planner.jit_rollout import KERNELS
 from surrogate.kernels import compiled_phi
 
-COMPILED_PREDICTORS = ("cv", "student")  # the predictors whose rollout planner.jit_rollout writes as numba kernels
 BATCHED = 4  # new windows: from this many in one call the teacher's onnxruntime graph beats its numba kernel (one core:
 # 386 against 405 us at 4, 2.3 against 5.7 ms at 50; Surrogate.phi)
 
@@ -65,7 +65,7 @@ class ExactLocal(Source):
     @property
     def compiled(self) -> bool:
         """Whether the compiled core runs this source itself: its predictor's rollout is written as numba kernels."""
-        return self.predictor.name in COMPILED_PREDICTORS
+        return self.predictor.name in KERNELS
 
     def local_jacobians(self):
         """The predictor's phi_jac."""
