@@ -16,6 +16,8 @@ braking harder than mpc.b_courtesy. Per source, over every (state, candidate):
                (b_i < 0), and because it predicts braking above b_courtesy (a refusal may have both reasons);
   fa_unsafe_merged  the share of truly good merges it refuses as unsafe only after the candidate has merged (a car of
                the target lane predicted into the ego once it is there: how the predictor follows a cut-in through);
+  fa_unsafe_late  the share of truly good merges it refuses as unsafe with the first predicted contact beyond the
+               paper's horizon T_p (the steps the models of `make demo` are trained to roll out; the step looks 25-50);
   brake_detect the share of candidates that truly make a driver brake harder than the scenario's b_safe (they force)
                where it predicts braking above b_courtesy (why a step that trusts it forces);
 and per state, the candidate it ranks first (planner.strategy.Interactive.order):
@@ -95,7 +97,8 @@ def sources(cfg) -> dict:
 
 def verdicts(source, s, obs, plans) -> tuple:
     """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order, unsafe (K,): b_i < 0, unsafe only
-    once merged (K,)) of the K candidate plans (Delta, alpha, Z) as `source` judges them (Interactive.judge's steps)."""
+    once merged (K,), unsafe first beyond T_p (K,)) of the K candidate plans (Delta, alpha, Z) as `source` judges them
+    (Interactive.judge's steps)."""
     values = s.strategy.predict(obs, source, plans[2])  # kept, to say where a predicted collision comes
     judged = s.strategy.verdicts(s, obs, values, *plans)
     merge = np.array([j.merge for j in judged])
@@ -103,8 +106,9 @@ def verdicts(source, s, obs, plans) -> tuple:
     good = merges & [s.strategy.acceptable(s, j) for j in judged]
     inside = np.array([(b_i(v, s.R, s.stretch, s.shape) < 0.0).any(axis=0) for v in values])  # (K, H): someone inside
     unsafe = inside.any(axis=1)
-    merged = unsafe & (inside.argmax(axis=1) + 1 >= merge)  # steps count from 1, as Judged.merge
-    return good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged), unsafe, merged
+    first = inside.argmax(axis=1) + 1  # steps count from 1, as Judged.merge
+    return (good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged), unsafe,
+            unsafe & (first >= merge), unsafe & (first > s.T_p))
 
 
 def visited(cfg, driver, seed: int):
@@ -138,11 +142,11 @@ def run(cfg, judges=None) -> dict:
             judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
             true_good, true_merge, true_brake, *_ = verdicts(*judges["oracle"], obs, plans)
             for name, (source, s_) in judges.items():
-                good, merges, brake, order, unsafe, merged = verdicts(source, s_, obs, plans)
+                good, merges, brake, order, unsafe, merged, late = verdicts(source, s_, obs, plans)
                 per_state[name].append({"seed": seed, "good": good, "merges": merges, "true_good": true_good,
                                         "true_merge": true_merge, "brake": brake, "true_brake": true_brake,
                                         "first": order[0], "b_c": s_.b_courtesy, "b_safe": cfg.scenario.b_safe,
-                                        "unsafe": unsafe, "unsafe_merged": merged})
+                                        "unsafe": unsafe, "unsafe_merged": merged, "unsafe_late": late})
     table = {name: scores(rows, cfg.resamples, cfg.seed_offset) for name, rows in per_state.items()}
     write(path, table)
     return table
@@ -157,6 +161,7 @@ def scores(rows, resamples: int, seed: int) -> dict:
             "fa_unsafe": [r["unsafe"][r["true_good"]] for r in rows],
             "fa_braking": [r["brake"][r["true_good"]] > r["b_c"] for r in rows],
             "fa_unsafe_merged": [r["unsafe_merged"][r["true_good"]] for r in rows],
+            "fa_unsafe_late": [r["unsafe_late"][r["true_good"]] for r in rows],
             "brake_detect": [r["brake"][r["true_brake"] > r["b_safe"]] > r["b_c"] for r in rows]}
     out = {"states": len(rows)}
     for k, groups in cand.items():
@@ -202,11 +207,12 @@ def main(overrides=()) -> dict:
     print(f"{table['oracle']['states']} states that mpc=interactive with {cfg.drive} visits on {cfg.worlds} held-out "
           f"{cfg.scenario.name} worlds (seeds from {cfg.seed_offset}), every {cfg.every}th step; "
           f"{table['oracle']['states_with_good']} have a good merge by the world's verdict; {cfg.out_dir}/verdicts.csv")
-    print("| source | false alarm % | of them unsafe % | unsafe once merged % | for braking % | miss % "
-          "| brake false alarm % | forcing detected % | takes a good merge % | takes a bad merge % |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| source | false alarm % | of them unsafe % | unsafe once merged % | unsafe beyond T_p % | for braking % "
+          "| miss % | brake false alarm % | forcing detected % | takes a good merge % | takes a bad merge % |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in table.items():
         print(f"| {name} | {pct(r, 'false_alarm')} | {pct(r, 'fa_unsafe')} | {pct(r, 'fa_unsafe_merged')} "
+              f"| {pct(r, 'fa_unsafe_late')} "
               f"| {pct(r, 'fa_braking')} | {pct(r, 'miss')} | {pct(r, 'brake_fa')} | {pct(r, 'brake_detect')} "
               f"| {pct(r, 'takes_good')} | {pct(r, 'takes_bad')} |")
     return table

@@ -9,13 +9,15 @@ def test_the_scores_count_refused_good_merges_accepted_bad_ones_and_the_first_ch
     row = {"true_good": np.array([True, True, False, False]), "true_merge": np.array([True, True, True, False]),
            "good": np.array([True, False, True, False]), "merges": np.array([True, True, True, False]),
            "brake": np.array([0.0, 5.0, 0.0, 3.5]), "true_brake": np.array([0.0, 0.0, 5.0, 4.5]), "first": 2, "b_c": 3.0,
-           "b_safe": 4.0, "unsafe": np.array([False, True, False, True]), "unsafe_merged": np.array([False, True, False, False])}
+           "b_safe": 4.0, "unsafe": np.array([False, True, False, True]), "unsafe_merged": np.array([False, True, False, False]),
+           "unsafe_late": np.array([False, True, False, True])}
     out = verdicts.scores([row], resamples=10, seed=0)
     assert out["false_alarm"] == 0.5  # of the two good merges it refuses the second
     assert out["miss"] == 1.0  # the one merge that is not good, it takes for good
     assert out["brake_fa"] == 0.5  # two candidates brake nobody; it predicts 5 m/s^2 for one
     assert out["fa_unsafe"] == 0.5 and out["fa_braking"] == 0.5  # it refuses the second as unsafe and for its braking
     assert out["fa_unsafe_merged"] == 0.5  # ... unsafe only once it has merged
+    assert out["fa_unsafe_late"] == 0.5  # ... with the first contact beyond T_p (the fourth is not a good merge)
     assert out["brake_detect"] == 0.5  # of the two that force, it sees braking above b_courtesy in the last
     assert out["takes_good"] == 0.0 and out["takes_bad"] == 1.0 and out["states_with_good"] == 1
     assert out["good_kept"] == 0.5  # it keeps the first good merge
@@ -28,7 +30,8 @@ def test_good_kept_is_one_minus_the_refusals_with_the_mirrored_interval():
         k = int(rng.integers(1, 6))
         rows.append({"true_good": rng.random(k) < 0.6, "true_merge": np.ones(k, bool), "good": rng.random(k) < 0.5,
                      "merges": np.ones(k, bool), "brake": np.zeros(k), "true_brake": np.zeros(k), "first": 0, "b_c": 3.0,
-                     "b_safe": 4.0, "unsafe": np.zeros(k, bool), "unsafe_merged": np.zeros(k, bool)})
+                     "b_safe": 4.0, "unsafe": np.zeros(k, bool), "unsafe_merged": np.zeros(k, bool),
+                     "unsafe_late": np.zeros(k, bool)})
     out = verdicts.scores(rows, resamples=200, seed=1)
     kept = sum(int((r["good"] & r["true_good"]).sum()) for r in rows)  # counted directly
     assert 0 < out["good_kept"] < 1
