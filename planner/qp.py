@@ -41,8 +41,8 @@ class QP:
 class BoxQP:
     """min 1/2 x'Px + q'x s.t. lo <= x <= hi for a small positive definite P, built once, `solve(q)` per iteration.
 
-    First the unconstrained minimiser -P^-1 q (P inverted once per step): inside the box it is the box QP's solution, exactly, and costs a
-    matrix-vector product; otherwise OSQP, set up at its first use and warm-started."""
+    First the unconstrained minimiser -P^-1 q (P inverted once per step): inside the box it is the box QP's solution,
+    exactly, and costs a matrix-vector product; otherwise OSQP, set up at its first use and warm-started."""
 
     def __init__(self, P, q, lo, hi, settings: dict):
         self.P = np.asarray(P, float)
