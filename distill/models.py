@@ -30,6 +30,8 @@ def window_of(module) -> tuple:
 class TorchPredictor:
     """A torch network as a numpy predictor: forward in the network's dtype, Jacobians by reverse-mode autodiff."""
 
+    fitted = True  # learned from data, its rollouts fitted over so many steps: mpc.strategy.trust cuts them short
+
     def __init__(self, name, module):
         """name for reports; module maps a torch window (B, T_obs, SLOTS, 2) to next (B, SLOTS, 2), metres."""
         self.name, self.module = name, module.eval()

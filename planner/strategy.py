@@ -374,6 +374,7 @@ class Interactive:
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
     merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
     wait_by: str = rule(OneOf(("room", "J")))  # how candidates that merge within no horizon are ordered before J: by the most room predicted beside them (room), or not (J)
+    trust: int | None = rule(Int(1, nullable=True))  # steps of a trained predictor's rollout the verdicts read; beyond, every other car goes on at its last predicted velocity (None: all)
 
     def __post_init__(self):
         check_fields(self, "mpc.strategy")
@@ -450,16 +451,31 @@ class Interactive:
             Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
         else:
             Delta, alpha, Z, values = policy.compiled(params, obs.history, H)
+        values = self.held(source, obs.history, values)
         names = [f"{what}, lean to {y:.2f} m, enter at {c} m" for what, _, _, y, c, _ in combos]
         return names, Delta, alpha, Z, values
 
-    @staticmethod
-    def predict(obs: Observation, source, Z):
+    def predict(self, obs: Observation, source, Z):
         """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
-        one compiled call where the predictor's rollout is compiled (jit_rollout.jit_values), whatever the source."""
+        one compiled call where the predictor's rollout is compiled (jit_rollout.jit_values), whatever the source;
+        beyond `trust` steps held (held)."""
         ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
         rollouts = jit_rollout.jit_values(source.predictor)
-        return source.values(obs.history, ego) if rollouts is None else rollouts(obs.history, ego)
+        values = source.values(obs.history, ego) if rollouts is None else rollouts(obs.history, ego)
+        return self.held(source, obs.history, values)
+
+    def held(self, source, history, values):
+        """values (K, H, SLOTS, 2) with every other car beyond step `trust` going on at its velocity over that step,
+        where the source's predictor is learned (`fitted`: its rollouts are fitted over so many steps); else values."""
+        if self.trust is None or self.trust >= values.shape[1] or not getattr(source.predictor, "fitted", False):
+            return values
+        T = self.trust
+        last = values[:, T - 1, 1:]
+        before = values[:, T - 2, 1:] if T >= 2 else np.broadcast_to(np.asarray(history, float)[-1, 1:], last.shape)
+        out = np.array(values, float)
+        steps = np.arange(1, values.shape[1] - T + 1)[None, :, None, None]
+        out[:, T:, 1:] = last[:, None] + steps * (last - before)[:, None]
+        return out
 
     def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
         """The predictor's verdict on each open-loop candidate (K, H) (predict, verdicts)."""

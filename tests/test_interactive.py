@@ -144,6 +144,38 @@ def test_a_predictor_that_sees_the_cut_in_force_the_driver_behind_refuses_the_ga
     assert verdict.merge == s.strategy.never(s) and verdict.braking <= s.b_courtesy
 
 
+class Trained(Scripted):
+    """Scripted as if learned: the rollouts `mpc.strategy.trust` cuts short."""
+
+    fitted = True
+
+
+def test_a_trained_predictor_s_rollout_is_read_for_trust_steps_then_every_other_car_holds_its_velocity():
+    s, obs = world(6.0, 3.0)
+    s = replace(s, strategy=replace(s.strategy, trust=3))
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=(4, 10, 5, 2)).cumsum(axis=1)
+    held = s.strategy.held(Source("trained", Trained()), obs.history, values)
+    assert np.array_equal(held[:, :3], values[:, :3]) and np.array_equal(held[:, :, 0], values[:, :, 0])  # the ego's own plan kept
+    for h in range(3, 10):  # beyond: on at the velocity of the third step, by hand
+        assert held[:, h, 1:] == pytest.approx(values[:, 2, 1:] + (h - 2) * (values[:, 2, 1:] - values[:, 1, 1:]))
+    assert s.strategy.held(scripted(), obs.history, values) is values  # a written model is read whole
+    first = s.strategy.held(Source("trained", Trained()), obs.history, values[:, :1])  # one step: nothing beyond
+    assert first is values[:, :1] or np.array_equal(first, values[:, :1])
+    s1 = replace(s, strategy=replace(s.strategy, trust=1))  # from the first step: its velocity from the last seen position
+    one = s1.strategy.held(Source("trained", Trained()), obs.history, values)
+    assert one[:, 4, 1:] == pytest.approx(values[:, 0, 1:] + 4 * (values[:, 0, 1:] - obs.history[-1, 1:]))
+
+
+def test_a_yield_predicted_beyond_the_trusted_steps_does_not_open_the_gap():
+    """The yield the scripted driver starts at the lean's depth comes after 3 steps: trusting 3, the step reads the
+    driver behind at its old speed and waits, as with constant velocity; trusting all, it merges (the test above)."""
+    s, obs = world(6.0, 3.0)
+    s = replace(s, strategy=replace(s.strategy, trust=2))
+    name, verdict = best(s, obs, Source("trained", Trained(brake=1.5)))
+    assert verdict.merge == s.strategy.never(s)
+
+
 def test_a_candidate_counts_only_as_safe_and_courteous_as_the_worst_of_the_source_s_judges_finds_it():
     s, obs = world(5.5, 5.5)  # the gap constant velocity takes (above)
     trusting, doubting = scripted(), scripted(brake=6.0, trigger=2.0)
