@@ -374,7 +374,7 @@ class Interactive:
     refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
     merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
     wait_by: str = rule(OneOf(("room", "J")))  # how candidates that merge within no horizon are ordered before J: by the most room predicted beside them (room), or not (J)
-    trust: int | None = rule(Int(1, nullable=True))  # steps of a trained predictor's rollout the verdicts read; beyond, every other car goes on at its last predicted velocity (None: all)
+    trust: int | None = rule(Int(1, nullable=True))  # steps of a learned (`fitted`) predictor's rollout the verdicts read; beyond, every other car goes on at its last predicted velocity (None: all)
 
     def __post_init__(self):
         check_fields(self, "mpc.strategy")
