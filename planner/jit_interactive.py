@@ -203,19 +203,51 @@ def power(x, q):
 
 
 @njit(cache=True)
+def measure(sq0, sq1, R, stretch, p):
+    """core.rollout.b_i's shape (R m, stretch, p) for squared gaps sq0 along and sq1 across the road (m^2) as a number that
+    rises with b_i: b_i itself on the ellipse (p = 2), else S = |dx / (stretch R)|^p + |dy / R|^p (to_b turns it into
+    b_i: one pow per least S, not per car and step)."""
+    if p == 2.0:
+        return sq0 / stretch**2 + sq1 - R**2
+    return power(sq0 / (stretch * R) ** 2, p / 2) + power(sq1 / R**2, p / 2)
+
+
+@njit(cache=True)
+def to_b(least, R, p):
+    """b_i (m^2) of measure's number `least`; inf stays inf."""
+    return least if p == 2.0 or least == np.inf else R**2 * least ** (2 / p) - R**2
+
+
+@njit(cache=True)
 def b_min(values, R, stretch, p):
     """The least b_i (m^2) over every step and car of a rollout's values (H, SLOTS, 2): core.rollout.b_i's shape (R m,
     stretch, p), inf without cars. On the superellipse b_i = R^2 S^(2/p) - R^2 rises with S, so it is taken at the
-    least S: one pow per rollout, not per car and step."""
+    least S (measure, to_b)."""
     least = np.inf
     for t in range(values.shape[0]):
         for i in range(1, values.shape[1]):
-            sq0, sq1 = (values[t, 0, 0] - values[t, i, 0]) ** 2, (values[t, 0, 1] - values[t, i, 1]) ** 2
-            if p == 2.0:
-                least = min(least, sq0 / stretch**2 + sq1 - R**2)
-            else:
-                least = min(least, power(sq0 / (stretch * R) ** 2, p / 2) + power(sq1 / R**2, p / 2))
-    return least if p == 2.0 or least == np.inf else R**2 * least ** (2 / p) - R**2
+            least = min(least, measure((values[t, 0, 0] - values[t, i, 0]) ** 2, (values[t, 0, 1] - values[t, i, 1]) ** 2,
+                                       R, stretch, p))
+    return to_b(least, R, p)
+
+
+@njit(cache=True)
+def room(values, Z, R, stretch, p, y_ref, lane_width, lanes, target, far):
+    """Interactive.room of predicted values (K, H, SLOTS, 2) beside K candidates' paths Z (K, 4H): per candidate the
+    most, over the steps, of the least b_i (m^2) between the ego put at its x on the target lane's centre y_ref and
+    the cars in lane `target` (of `lanes`, lane_width m wide), a car elsewhere moved `far` m along the road; inf
+    without cars."""
+    K, H, M = values.shape[0], values.shape[1], values.shape[2]
+    out = np.full(K, -np.inf)
+    for k in range(K):
+        for t in range(H):
+            least = np.inf
+            for i in range(1, M):
+                lane = min(max(np.rint(values[k, t, i, 1] / lane_width), 0.0), lanes - 1.0)
+                x = values[k, t, i, 0] + (0.0 if lane == target else far)
+                least = min(least, measure((Z[k, 4 * t] - x) ** 2, (y_ref - values[k, t, i, 1]) ** 2, R, stretch, p))
+            out[k] = max(out[k], to_b(least, R, p))
+    return out
 
 
 @njit(cache=True)

@@ -484,9 +484,9 @@ class Interactive:
     def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
         jit_interactive.verdicts (these numbers, to rounding), as for the sources the compiled core runs."""
-        room = self.room(s, values, Z) if self.wait_by == "room" else np.zeros(len(values))  # by J: never read
         if compiled:
-            return [j._replace(room=float(r)) for j, r in zip(self.compiled_verdicts(s, obs, values, Delta, alpha, Z), room)]
+            return self.compiled_verdicts(s, obs, values, Delta, alpha, Z)
+        room = self.room(s, values, Z) if self.wait_by == "room" else np.zeros(len(values))  # by J: never read
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
         b, brakes = self.foreseen(s, obs, values)
@@ -522,12 +522,14 @@ class Interactive:
         return b, braking(values, obs.history, s.params.dt)
 
     def compiled_verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
-        """verdicts in one compiled call (jit_interactive.verdicts)."""
+        """verdicts in compiled calls (jit_interactive.verdicts, jit_interactive.room)."""
         shape = tuple(float(c) for c in (s.R, s.stretch, s.shape, s.params.dt))
         road = (float(s.y_ref), float(self.merge_tol), -2.0 * float(s.a_box[0]), float(self.lane_end), self.never(s))
         forms = tuple((f.P, f.q, float(f.r)) for f in costs(s, obs.u_prev))
         out = jit_interactive.verdicts(values, np.asarray(obs.history, float), Delta, alpha, Z, shape, road, forms, s.T_p)
-        return [Judged(*x) for x in zip(*(a.tolist() for a in out))]
+        room = (jit_interactive.room(values, Z, *shape[:3], float(s.y_ref), float(s.road.lane_width), float(s.road.lanes),
+                                     float(s.road.lane_of(s.y_ref)), FAR) if self.wait_by == "room" else np.zeros(len(values)))
+        return [Judged(*x) for x in zip(*(a.tolist() for a in (*out, room)))]
 
     @staticmethod
     def acceptable(s: Settings, j: Judged) -> bool:
