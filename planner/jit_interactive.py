@@ -136,6 +136,12 @@ def open_loop(Ws, bs, s, history, ego):
 
 
 @njit(cache=True)
+def lane_of(y, lane_width, lanes):
+    """data.world.Road.lane_of for one lateral position y (m): the index of the nearest lane centre, as a float."""
+    return min(max(np.rint(y / lane_width), 0.0), lanes - 1.0)
+
+
+@njit(cache=True)
 def target_lane(track, new, dt, lane_width, lanes, target):
     """strategy.target_lane of the windows that end before row `new` of the tracks (K, T_obs + H, SLOTS, 2): x (K,
     SLOTS) m, v (K, SLOTS) m/s at their last step, and whether each car is in lane `target` (of `lanes`, lane_width m
@@ -146,8 +152,7 @@ def target_lane(track, new, dt, lane_width, lanes, target):
         for i in range(M):
             x[b, i] = track[b, new - 1, i, 0]
             v[b, i] = (x[b, i] - track[b, new - 2, i, 0]) / dt
-            lane = min(max(np.rint(track[b, new - 1, i, 1] / lane_width), 0.0), lanes - 1.0)
-            there[b, i] = i > 0 and lane == target
+            there[b, i] = i > 0 and lane_of(track[b, new - 1, i, 1], lane_width, lanes) == target
     return x, v, there
 
 
@@ -243,8 +248,7 @@ def room(values, Z, R, stretch, p, y_ref, lane_width, lanes, target, far):
         for t in range(H):
             least = np.inf
             for i in range(1, M):
-                lane = min(max(np.rint(values[k, t, i, 1] / lane_width), 0.0), lanes - 1.0)
-                x = values[k, t, i, 0] + (0.0 if lane == target else far)
+                x = values[k, t, i, 0] + (0.0 if lane_of(values[k, t, i, 1], lane_width, lanes) == target else far)
                 least = min(least, measure((Z[k, 4 * t] - x) ** 2, (y_ref - values[k, t, i, 1]) ** 2, R, stretch, p))
             out[k] = max(out[k], to_b(least, R, p))
     return out

@@ -484,9 +484,9 @@ class Interactive:
     def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
         """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
         jit_interactive.verdicts (these numbers, to rounding), as for the sources the compiled core runs."""
+        room = self.room(s, values, Z, compiled) if self.wait_by == "room" else np.zeros(len(values))  # by J: never read
         if compiled:
-            return self.compiled_verdicts(s, obs, values, Delta, alpha, Z)
-        room = self.room(s, values, Z) if self.wait_by == "room" else np.zeros(len(values))  # by J: never read
+            return self.compiled_verdicts(s, obs, values, Delta, alpha, Z, room)
         K, H = Delta.shape
         ego = Z.reshape(K, H, 4)
         b, brakes = self.foreseen(s, obs, values)
@@ -499,11 +499,15 @@ class Interactive:
         return [Judged(*x) for x in zip(b, brakes, merge, J, overrun, room)]
 
     @staticmethod
-    def room(s: Settings, values, Z):
+    def room(s: Settings, values, Z, compiled: bool = False):
         """The most room (K,) in m^2 the predicted values (K, H, SLOTS, 2) leave beside each candidate's path Z (K, 4H)
         in the target lane: at each step, the least b_i between the ego put at its x on the target lane's centre and
         the cars in that lane (core.rollout.b_i's shape), then the most of those over the horizon. What a candidate
-        that merges within no horizon has to show: the room it is predicted to open, or to meet, for a later merge."""
+        that merges within no horizon has to show: the room it is predicted to open, or to meet, for a later merge.
+        compiled: by jit_interactive.room (these numbers, to rounding)."""
+        if compiled:
+            return jit_interactive.room(values, Z, float(s.R), float(s.stretch), float(s.shape), float(s.y_ref),
+                                        float(s.road.lane_width), float(s.road.lanes), float(s.road.lane_of(s.y_ref)), FAR)
         K, H = values.shape[:2]
         v = np.array(values, float)
         v[:, :, 0] = np.stack([Z.reshape(K, Z.shape[1] // 4, 4)[:, :H, 0], np.full((K, H), s.y_ref)], -1)
@@ -521,14 +525,12 @@ class Interactive:
         b = b.reshape(len(b), K, H).min(axis=(0, 2), initial=np.inf)
         return b, braking(values, obs.history, s.params.dt)
 
-    def compiled_verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
-        """verdicts in compiled calls (jit_interactive.verdicts, jit_interactive.room)."""
+    def compiled_verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, room) -> list[Judged]:
+        """verdicts in one compiled call (jit_interactive.verdicts), with each candidate's room (K,) m^2."""
         shape = tuple(float(c) for c in (s.R, s.stretch, s.shape, s.params.dt))
         road = (float(s.y_ref), float(self.merge_tol), -2.0 * float(s.a_box[0]), float(self.lane_end), self.never(s))
         forms = tuple((f.P, f.q, float(f.r)) for f in costs(s, obs.u_prev))
         out = jit_interactive.verdicts(values, np.asarray(obs.history, float), Delta, alpha, Z, shape, road, forms, s.T_p)
-        room = (jit_interactive.room(values, Z, *shape[:3], float(s.y_ref), float(s.road.lane_width), float(s.road.lanes),
-                                     float(s.road.lane_of(s.y_ref)), FAR) if self.wait_by == "room" else np.zeros(len(values)))
         return [Judged(*x) for x in zip(*(a.tolist() for a in (*out, room)))]
 
     @staticmethod

@@ -303,7 +303,8 @@ def test_the_room_beside_a_candidate_is_the_widest_target_lane_opening_at_its_x(
     values[0, :, 4] = np.stack([100.0 + 0 * t, 4.1 + 0 * t], -1)
     Z = np.zeros((1, 12))  # the ego stays at x = 0, in its lane (y = 0)
     assert s.stretch > 1 and s.y_ref == 4.0
-    assert Interactive.room(s, values, Z) == pytest.approx([8.0**2 / s.stretch**2 - s.R**2])
+    for compiled in (False, True):  # numpy's, and jit_interactive.room's for the sources whose search is compiled
+        assert Interactive.room(s, values, Z, compiled) == pytest.approx([8.0**2 / s.stretch**2 - s.R**2])
 
 
 def test_an_interactive_step_solves_and_reports_which_candidate_it_applied():
