@@ -458,22 +458,31 @@ class Interactive:
     def predict(self, obs: Observation, source, Z):
         """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
         one compiled call where the predictor's rollout is compiled (jit_rollout.jit_values), whatever the source;
-        beyond `trust` steps held (held)."""
+        beyond `trust` steps held (held). The rollout is causal, so it runs only over the steps that are read."""
         ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
+        read = np.ascontiguousarray(ego[:, :self.read(source, ego.shape[1])])
         rollouts = jit_rollout.jit_values(source.predictor)
-        values = source.values(obs.history, ego) if rollouts is None else rollouts(obs.history, ego)
-        return self.held(source, obs.history, values)
+        values = source.values(obs.history, read) if rollouts is None else rollouts(obs.history, read)
+        return self.held(source, obs.history, values, ego)
 
-    def held(self, source, history, values):
-        """values (K, H, SLOTS, 2) with every other car beyond step `trust` going on at its velocity over that step,
-        where the source's predictor is learned (`fitted`: its rollouts are fitted over so many steps); else values."""
-        if self.trust is None or self.trust >= values.shape[1] or not getattr(source.predictor, "fitted", False):
+    def read(self, source, H: int) -> int:
+        """How many of H rollout steps the verdicts read: `trust` for a learned (`fitted`) predictor, else all H."""
+        fitted = self.trust is not None and getattr(source.predictor, "fitted", False)
+        return min(self.trust, H) if fitted else H
+
+    def held(self, source, history, values, ego=None):
+        """values (K, T, SLOTS, 2) continued to every step of the ego's path ego (K, H, 2) (None: as many as values),
+        every other car beyond step `read` going on at its velocity over that step; slot 0 is the ego's own path."""
+        H = values.shape[1] if ego is None else ego.shape[1]
+        T = self.read(source, H)
+        if T >= values.shape[1] == H:
             return values
-        T = self.trust
         last = values[:, T - 1, 1:]
         before = values[:, T - 2, 1:] if T >= 2 else np.broadcast_to(np.asarray(history, float)[-1, 1:], last.shape)
-        out = np.array(values, float)
-        steps = np.arange(1, values.shape[1] - T + 1)[None, :, None, None]
+        out = np.empty((len(values), H, *values.shape[2:]))
+        out[:, :T] = values[:, :T]
+        out[:, T:, 0] = values[:, T:, 0] if ego is None else ego[:, T:]
+        steps = np.arange(1, H - T + 1)[None, :, None, None]
         out[:, T:, 1:] = last[:, None] + steps * (last - before)[:, None]
         return out
 

@@ -167,6 +167,18 @@ def test_a_trained_predictor_s_rollout_is_read_for_trust_steps_then_every_other_
     assert one[:, 4, 1:] == pytest.approx(values[:, 0, 1:] + 4 * (values[:, 0, 1:] - obs.history[-1, 1:]))
 
 
+def test_a_trained_predictor_is_rolled_out_only_over_the_trusted_steps_with_the_same_verdict_values():
+    """predict runs the rollout over `trust` steps only: the same values as the whole rollout held after the fact."""
+    s, obs = world(6.0, 3.0)
+    s = replace(s, strategy=replace(s.strategy, trust=3))
+    source, asked = Source("trained", Trained()), []
+    rollout = source.values
+    source.values = lambda history, ego: asked.append(ego.shape[1]) or rollout(history, ego)
+    names, Delta, alpha, Z = s.strategy.plans(s, obs, None)
+    whole = s.strategy.held(source, obs.history, rollout(obs.history, Z.reshape(len(Z), -1, 4)[:, :, :2]))
+    assert np.array_equal(s.strategy.predict(obs, source, Z), whole) and asked == [3]
+
+
 def test_a_yield_predicted_beyond_the_trusted_steps_does_not_open_the_gap():
     """The scripted driver yields only once the lean is 1 m deep, some steps in: reading 2 steps, the step sees the
     driver behind at its old speed and waits, as with constant velocity; reading all, it merges
