@@ -460,9 +460,9 @@ class Interactive:
         one compiled call where the predictor's rollout is compiled (jit_rollout.jit_values), whatever the source;
         beyond `trust` steps held (held). The rollout is causal, so it runs only over the steps that are read."""
         ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
-        read = np.ascontiguousarray(ego[:, :self.read(source, ego.shape[1])])
+        trusted = np.ascontiguousarray(ego[:, :self.read(source, ego.shape[1])])
         rollouts = jit_rollout.jit_values(source.predictor)
-        values = source.values(obs.history, read) if rollouts is None else rollouts(obs.history, read)
+        values = source.values(obs.history, trusted) if rollouts is None else rollouts(obs.history, trusted)
         return self.held(source, obs.history, values, ego)
 
     def read(self, source, H: int) -> int:
@@ -475,7 +475,7 @@ class Interactive:
         every other car beyond step `read` going on at its velocity over that step; slot 0 is the ego's own path."""
         H = values.shape[1] if ego is None else ego.shape[1]
         T = self.read(source, H)
-        if T >= values.shape[1] == H:
+        if T == H == values.shape[1]:  # read whole
             return values
         last = values[:, T - 1, 1:]
         before = values[:, T - 2, 1:] if T >= 2 else np.broadcast_to(np.asarray(history, float)[-1, 1:], last.shape)
