@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-zstep interaction batch ceiling results results-full cross-world interactive-models candidate-models clean
+.PHONY: demo models test test-slow bench bench-zstep interaction batch ceiling safety results results-full cross-world interactive-models candidate-models clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -12,39 +12,68 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The whole pipeline at demo size (about 12 minutes on 2 cores once installed): data, teacher, certified student, the
-# student distilled further on the states mpc=interactive visits with cv on 10 dense worlds and the world's answers to
-# its candidate plans there (data/small/candidates: 1 minute; seeds from 30,000,000; without it the student's
-# interactive step merges courteously in none of 160 tuning worlds, with it in 44%: docs/studies.md), the
-# states the student's courteous planner linearises at (seeds from 5,000,000, kept from data and tests), the gradient
-# surrogate trained and tested on them, closed-loop ADMM-NNMPC vs NNMPC in both scenarios, the accuracy-vs-speed table;
-# then the dense headline (about 1.5 of those minutes, estimated from 144 s of processor time, two thirds of it the
-# ceiling's search): on 4 held-out dense worlds (seeds from 2,000,000) the clairvoyant ceiling, ADMM with
-# constant-velocity predictions (cv) and the paper's step, then the courteous step, one short table and a GIF of one
-# courteous merge (outputs/demo/merge_courteous.gif). cv, because the courteous step merges as often with it as with the
-# learned predictors (results/README-results.md) and the student's paper step takes 4.5 times as long there. The teacher
-# trains 4 epochs here (2 min) instead of its default 12 (6.5 min: 40.6 against 42.6 mm rollout ADE; `make results` uses
-# 12); the surrogate sees 2000 of the planner's states instead of its default 8000.
-demo: $(STAMP)
-	$(BIN)/make-dataset
-	$(BIN)/distill model=teacher model.epochs=4
-	$(BIN)/distill model=student
-	$(BIN)/python -m bench.candidates worlds=10 "drive=[cv]" out_dir=data/small name=candidates
-	$(BIN)/distill model=student dataset=interactive dataset_dir=data/small/candidates init_from=models/student.ckpt model.epochs=10 eval_dir=data/small
-	$(BIN)/planner scenario=dense gradients=student mpc=courteous method=admm episodes=8 seed=5000000 plots=false record_dir=data/small/iterates
-	$(BIN)/surrogate data.iterates=data/small/iterates data.iterate_states=2000
-	$(BIN)/planner --gradients=surrogate method=both scenario=two_lane
-	$(BIN)/planner --gradients=surrogate method=both scenario=three_lane
-	$(BIN)/planner --gradients=student method=both scenario=two_lane
-	$(BIN)/compare
-	$(BIN)/ceiling scenario=dense episodes=4 seed=2000000 out_dir=outputs/demo
-	$(BIN)/planner scenario=dense gradients=cv method=admm episodes=4 seed=2000000 plots=false out_dir=outputs/demo/paper
-	$(BIN)/planner scenario=dense gradients=cv mpc=courteous method=admm episodes=4 seed=2000000 plots=false out_dir=outputs/demo/courteous
-	$(BIN)/python -m bench.demo outputs/demo scenario=dense gradients=cv
+# The learning pipeline, in models/ and data/small/: the dataset, the teacher, the certified student, the student
+# distilled further on the world's answers to mpc=interactive's candidate plans at the states its closed loop visits
+# with cv (bench.candidates, seeds from 30,000,000; without it the student's interactive step merges courteously in none
+# of 160 tuning worlds, with it in 44%: docs/archive/2026-11-studies.md), the states the student's interactive step
+# linearises at (seeds from 5,000,000, kept from data and tests), and the gradient surrogate trained and tested on them.
+# $(1)..$(6): each job's size overrides (none: its default in conf/, the full recipe).
+define MODELS
+	$(BIN)/make-dataset $(1)
+	$(BIN)/distill model=teacher $(2)
+	$(BIN)/distill model=student $(3)
+	$(BIN)/python -m bench.candidates "drive=[cv]" out_dir=data/small name=candidates $(4)
+	$(BIN)/distill model=student dataset=interactive dataset_dir=data/small/candidates init_from=models/student.ckpt eval_dir=data/small $(5)
+	$(BIN)/planner scenario=dense gradients=student mpc=interactive method=admm episodes=8 seed=5000000 plots=false record_dir=data/small/iterates
+	$(BIN)/surrogate data.iterates=data/small/iterates $(6)
+endef
 
+# make demo's sizes: each training smaller than its job's default, so that the demo fits 10 minutes on 2 cores (bench.demo
+# prints by how much); `make models` trains the same pipeline at the full recipe.
+DEMO_DATASET := dataset.episodes=80
+DEMO_TEACHER := model.epochs=1
+DEMO_STUDENT := model.epochs=4 model.certificate.samples=3000
+DEMO_CANDIDATES := worlds=10
+DEMO_FINETUNE := model.epochs=3
+DEMO_SURROGATE := data.iterate_states=300 data.dataset_windows=600 data.plan_states=300 trainer.max_epochs=8
+comma := ,
+DEMO_SHRUNK := $(foreach o,$(DEMO_DATASET),make_dataset:$(o)) $(foreach o,$(DEMO_TEACHER),distill$(comma)model=teacher:$(o)) \
+	$(foreach o,$(DEMO_STUDENT),distill$(comma)model=student:$(o)) $(foreach o,$(DEMO_CANDIDATES),candidates:$(o)) \
+	$(foreach o,$(DEMO_FINETUNE),distill$(comma)model=student$(comma)dataset=interactive:$(o)) \
+	$(foreach o,$(DEMO_SURROGATE),surrogate:$(o))
+DEMO := outputs/demo
+DEMO_WORLDS := 4
+
+# The pipeline at demo size, then the dense headline: on 4 held-out dense worlds (seeds from 2,000,000) the clairvoyant
+# ceiling and ADMM's interactive step (mpc=interactive) with cv, the learned student and its gradient surrogate;
+# compare's accuracy-against-speed table; the headline table, how far each training was shrunk, and a picture of one
+# merge ($(DEMO)/merge.png: the road, the cars, the ego's plan, the outcome). Each training is cut to between 4% and 50%
+# of its job's default (bench.demo prints each). Timed from a fresh clone on a quiet 2-core machine (2026-12-02, commit
+# ee61942): 6 min 57 s wall, the venv included; 439 s user + 55 s sys.
+# Every job of one `make demo` (or `make models`) is a child of one MLflow parent run named after the command and its start.
+demo: export MLFLOW_RUN_GROUP := make demo $(shell date -u +%Y-%m-%dT%H:%M:%SZ)
+demo: $(STAMP)
+	$(call MODELS,$(DEMO_DATASET),$(DEMO_TEACHER),$(DEMO_STUDENT),$(DEMO_CANDIDATES),$(DEMO_FINETUNE),$(DEMO_SURROGATE))
+	$(BIN)/ceiling scenario=dense episodes=$(DEMO_WORLDS) seed=2000000 out_dir=$(DEMO)
+	for g in cv student surrogate; do $(BIN)/planner scenario=dense mpc=interactive gradients=$$g method=admm episodes=$(DEMO_WORLDS) \
+		seed=2000000 plots=false out_dir=$(DEMO)/$$g || exit 1; done
+	$(BIN)/compare
+	$(BIN)/python -m bench.demo $(DEMO) scenario=dense --shrunk $(DEMO_SHRUNK)
+
+# make demo's models at the full recipe, every job at its default;
+# not yet timed (the old demo's sizes, smaller, took about 20 minutes on 2 cores).
+models: export MLFLOW_RUN_GROUP := make models $(shell date -u +%Y-%m-%dT%H:%M:%SZ)
+models: $(STAMP)
+	$(call MODELS)
+
+# The suite on both cores (pytest-xdist; each file on one worker, so a file's module fixtures are built once), but the
+# end-to-end tests marked slow, which `make test-slow` runs (CI runs both). No test waits on the clock.
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile -m "not slow" --durations=15
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -n 2 --dist loadfile -m slow
 
 # One MPC step per gradient source on saved planning states, single-threaded, with the ratios (needs `make demo` models).
 bench: $(STAMP)
@@ -66,11 +95,23 @@ batch: $(STAMP)
 
 # The clairvoyant ceiling on 200 held-out dense worlds (seeds from 2,000,000) and with every driver stubborn: the strategy
 # library, then its cross-entropy refinement; about 10 minutes on 2 cores (5.7 processor seconds a world, measured on 12
-# tuning worlds on a busy machine; docs/studies.md). The same for other scenarios: `ceiling scenario=dense_deadline
+# tuning worlds on a busy machine; docs/findings.md). The same for other scenarios: `ceiling scenario=dense_deadline
 # episodes=200`; `backend=ray ray.address=auto` for a cluster; a planner batch's runs as further
 # starts: 'starts=["<its out_dir>/steps/admm_{seed}.csv"]' (planner/batch.py writes them; `make results` passes them all).
 ceiling: $(STAMP)
 	$(BIN)/ceiling scenario=dense episodes=200 seed=2000000
+
+# Collisions (issue 74): the rules row (mpc=courteous) and mpc=interactive with cv, the student and the surrogate, ADMM on
+# 500 fresh dense worlds each (seeds from 40,000,000) and on 100 where no driver yields (scenario.cooperation=stubborn,
+# seeds from 41,000,000): outputs/safety/<time>/safety.md, collisions with 95% intervals and the seeds that collided;
+# exit 2 on any collision or crash. Needs `make demo`'s models. SAFETY_WORLDS/SAFETY_STUBBORN size it, SAFETY takes any
+# other override; the time per world is not yet measured.
+# On a Ray cluster: make safety SAFETY_WORLDS=10000 SAFETY_STUBBORN=2000 SAFETY="backend=ray ray.address=auto".
+SAFETY_WORLDS ?= 500
+SAFETY_STUBBORN ?= 100
+SAFETY ?=
+safety: $(STAMP)
+	$(BIN)/safety worlds=$(SAFETY_WORLDS) stubborn_worlds=$(SAFETY_STUBBORN) $(SAFETY)
 
 # Every table and figure of the README's Results section from scratch (dataset, 3 trainings per model, held-out batches of
 # every gradient source, Table II scenarios, the cooperation sweep, interaction benchmark, step-time bench, the ceiling
@@ -94,7 +135,7 @@ cross-world: $(STAMP)
 # Predictors for mpc=interactive (issue 44 point 3): the dataset that asks the step's questions (cut-ins, yields
 # followed through, 25-step branches), a teacher fit on 25-step rollouts (the step's horizon), and a student distilled
 # from it, in models/interactive/. Drive them with `planner scenario=dense mpc=interactive
-# gradients=student models_dir=models/interactive`. About 55 minutes on 2 cores (docs/studies.md).
+# gradients=student models_dir=models/interactive`. About 55 minutes on 2 cores (docs/archive/2026-11-studies.md).
 interactive-models: $(STAMP)
 	$(BIN)/make-dataset dataset=interactive
 	$(BIN)/distill model=teacher dataset=interactive model.epochs=3 models_dir=models/interactive

@@ -29,10 +29,10 @@ from planner import mpc, setup
 from planner.gradients import WorldModel
 
 SCHEMA = {"name": validate.Name(), "out_dir": validate.Text(), "models_dir": validate.Text(), "seed_offset": validate.SEED,
-          "worlds": validate.Int(1), "every": validate.Int(1), "per_state": validate.Int(1),
+          "worlds": validate.EPISODES, "every": validate.Int(1), "per_state": validate.Int(1),
           "drive": validate.ListOf(validate.GRADIENT_OPTIONS, at_least=1), "closed": validate.Bool(),
           "planner": validate.ListOf(validate.Text()), "reserved": validate.ListOf(validate.ListOf(validate.SEED, length=2)),
-          "dataset.T_obs": validate.Int(2), "dataset.n_slots": validate.Int(1), "dataset.split": validate.Fractions(3)}
+          "dataset.T_obs": validate.Int(2, validate.MAX_T_OBS), "dataset.n_slots": validate.Int(1, validate.MAX_SLOTS), "dataset.split": validate.Fractions(3)}
 
 
 def worlds(cfg) -> tuple:
@@ -65,11 +65,11 @@ def candidate_paths(cfg, oracle, world, seen, u_prev) -> list:
     with cfg.closed, the closed-loop ones as they drive against the world itself."""
     _, _, source, s = oracle
     obs = mpc.Observation(world.states()[0], u_prev, seen.history)
-    _, Delta, _, Z = s.strategy.plans(s, obs, None)
+    _, Delta, _, Z = s.strategy.open_loop.plans(s, obs, None)
     paths = list(Z.reshape(*Delta.shape, 4)[:, :, :2])
     if cfg.closed:
         source.predictor.world, source.predictor.ids = world, seen.ids
-        _, c_Delta, _, c_Z, _ = s.strategy.chased(s, obs, source)
+        _, c_Delta, _, c_Z, _ = s.strategy.closed_loop.chased(s, obs, source)
         paths += list(c_Z.reshape(*c_Delta.shape, 4)[:, :, :2])
     return paths
 
@@ -77,7 +77,7 @@ def candidate_paths(cfg, oracle, world, seen, u_prev) -> list:
 def answers(world, paths):
     """Every car's xy (K, H, M, 2) (m) and hidden yielding flags (K, H, M) in copies of `world` with the ego put on
     each of K paths (H, 2): the oracle's rollout (planner.gradients.WorldModel; plans sharing a prefix share its steps)."""
-    oracle, m = WorldModel(), len(world.states())
+    oracle, m = WorldModel("all"), len(world.states())
     oracle.world, oracle.ids = world, np.arange(m)
     paths = np.asarray(paths)
     flags = np.zeros((*paths.shape[:2], m), bool)
@@ -143,7 +143,7 @@ def main(overrides=()) -> dict:
     cfg = job_config("candidates", overrides)
     validate.check(cfg, SCHEMA)
     worlds(cfg)  # a clash or an empty split fails before the MLflow run opens
-    with mlflow_run("candidates", cfg):
+    with mlflow_run("candidates", cfg, run_name=f"candidates-{cfg.name}-worlds{cfg.worlds}-from{cfg.seed_offset}"):
         meta = run(cfg)
         mlflow.log_metrics({**meta["stats"], "build_s": meta["build_s"],
                             **{f"{s}_windows": v["windows"] for s, v in meta["splits"].items()}})

@@ -43,24 +43,26 @@ from core import validate
 from core.jobs import CONF_DIR, MissingModel, UserError, console, guarded, mlflow_run, open_experiment, writable
 from core.rollout import braking as hardest_braking
 from core.stats import bootstrap
+from distill.metrics import brake_scores
 from planner.gradients import available
 
 log = logging.getLogger(__name__)
 
 REFERENCE = "reference"
 FOLLOWER = "follower"
-SOURCES = available(needs_world=False)  # conf/gradients/ but the oracle: it reads the planner's running world
+SOURCES = available(needs_world=False, hypotheses=False)  # conf/gradients/ but the oracle (it reads the planner's
+# running world) and the hypothesis sources (one rollout per hypothesis: their scores are per hypothesis, issue 72)
 POS = validate.Real(0, lo_open=True)
 SCHEMA = {
     "sources": validate.ListOf(validate.OneOf((*SOURCES, REFERENCE, FOLLOWER)), at_least=1), "models_dir": validate.Text(),
-    "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "n_slots": validate.Int(1), "T_p": validate.Int(1),
+    "out_dir": validate.Text(), "seed_offset": validate.SEED, "states": validate.Int(1), "n_slots": validate.Int(1, validate.MAX_SLOTS), "T_p": validate.HORIZON,
     "branch.min_steps": validate.Int(0), "branch.max_steps": validate.Int(0), "branch.reach": POS,
     "branch.tries": validate.Int(1), "plans.kinds": validate.ListOf(validate.OneOf(KINDS)),
     "plans.y_push": validate.Range(0), "plans.dv": validate.Range(0), "plans.delay": validate.ListOf(validate.Int(0), 2),
     "plans.k_y": POS, "plans.a_bounds": validate.Range(strict=True), "reference.draws": validate.Int(1),
     "score.threshold": validate.Real(0), "score.tolerance": validate.Real(0), "score.resamples": validate.Int(0),
     "score.forced": POS, "score.calm": POS, "score.alarm": POS,
-    "dataset.seed": validate.SEED, "dataset.episodes": validate.Int(1),
+    "dataset.seed": validate.SEED, "dataset.episodes": validate.EPISODES,
 }
 
 
@@ -115,20 +117,6 @@ def follower_braking(s, pair: Pair):
         Z = np.stack([ego[:, 0], ego[:, 1], np.zeros(T_p), np.diff(x) / dt], 1).ravel()
         out.append(s.strategy.follower_braking(s, mpc.Observation(np.zeros(4), np.zeros(2), pair.history), Z, cv))
     return np.array(out)
-
-
-def brake_scores(pred, true, forced: float, calm: float, alarm: float) -> dict:
-    """brake_corr, brake_auc and brake_fa (module doc) of predicted against true hardest braking per plan, both (P, 2)
-    in m/s^2."""
-    from scipy.stats import mannwhitneyu
-
-    p, t = np.ravel(pred), np.ravel(true)
-    corr = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 and t.std() > 0 else 0.0
-    pos, neg = p[t > forced], p[t <= forced]
-    auc = float(mannwhitneyu(pos, neg).statistic / (len(pos) * len(neg))) if len(pos) and len(neg) else float("nan")
-    quiet = p[t < calm]
-    fa = float((quiet > alarm).mean()) if len(quiet) else float("nan")
-    return {"brake_corr": corr, "brake_auc": auc, "brake_fa": fa}
 
 
 def peaks(response):

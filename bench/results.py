@@ -88,6 +88,13 @@ from core.jobs import CONF_DIR, console, guarded, job_config, mlflow_run, writab
 from planner.compare import fmt
 
 log = logging.getLogger(__name__)
+
+
+def step_s() -> float:
+    """The world's step dt (s), the dense scenario's: every batch results draws drives it."""
+    return float(job_config("planner", ["scenario=dense"]).scenario.params.dt)
+
+
 TEXT = Path(__file__).with_name("results_text.md")
 MODELS = ("cv", "teacher", "student")  # predictors of the accuracy table; cv from the cv_* metrics of the teacher's runs
 ACCURACY = ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "ade_rollout_m_yield")
@@ -239,7 +246,7 @@ def cooperation(r: Report) -> list[dict]:
 def predictors(r: Report) -> dict:
     """The predictors' test-split errors (mm) over trainings; cv's from the teacher's runs."""
     d = {m: [r.out[f"distill {m} seed {k}"] for k in r.seeds] for m in ("teacher", "student")}
-    acc = {"cv": over_trainings([{k[3:]: v for k, v in run.items() if k.startswith("cv_")} for run in d["teacher"]],
+    acc = {"cv": over_trainings([{k.removesuffix("_cv"): v for k, v in run.items() if k.endswith("_cv")} for run in d["teacher"]],
                                 ACCURACY), **{m: over_trainings(d[m], ACCURACY) for m in d}}
     mm = lambda t: fmt(1e3 * t[0], ".1f", 1e3 * t[1], 1e3 * t[2])
     table = markdown(["predictor", "ADE 1-step (mm)", "ADE rollout (mm)", "FDE rollout (mm)",
@@ -288,7 +295,8 @@ def fidelity(r: Report) -> list[dict]:
         n[score] = len(scored)
     oracle = r.dense_rows.get((label("oracle", ORACLE), "admm"))
     fidelity_plot({name: {**scores[name], "row": rows[name, "admm"]} for name in scores}, rhos, FIDELITY, oracle,
-                  r.dest / "fidelity.png")
+                  r.dest / "fidelity.png", f"{len(seeds)} held-out dense worlds (seeds from {r.cfg.planner_seed})",
+                  step_s())
     table = markdown(["predictor", "trainings x worlds", *(f"{k} [95% CI]" for k in FIDELITY), "courteous % [95% CI]",
                       "t_merge steps [95% CI]"],
                      [[name, size(rows[name, "admm"]), *(fmt(scores[name][k][0], ".3f", *scores[name][k][1:]) for k in FIDELITY),
@@ -310,7 +318,7 @@ def fidelity(r: Report) -> list[dict]:
 def random_merges(r: Report) -> dict:
     """The random merges' outcomes and their bar figures."""
     rows = r.batch_rows("random", r.p.sources)
-    figs = {"merge_rate.png": ("merged", "merge rate (%)", 100.0), "t_merge.png": ("t_merge", "t_merge (steps of 0.2 s)", 1.0),
+    figs = {"merge_rate.png": ("merged", "merge rate (%)", 100.0), "t_merge.png": ("t_merge", "t_merge (s)", step_s()),
             "fallbacks.png": ("fallbacks", "fallbacks per episode", 1.0)}
     for name, (key, ylabel, scale) in figs.items():
         bar_plot(rows, key, ylabel, f"random merges: {ylabel}, 95% CI", r.dest / name, scale)

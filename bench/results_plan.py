@@ -16,12 +16,14 @@ from planner.batch import progress
 from planner.gradients import available, reads_models
 
 log = logging.getLogger(__name__)
-TRAINED = tuple(s for s in available() if reads_models(s))  # gradient sources that read trained models (per training seed)
+TRAINED = tuple(s for s in available(hypotheses=False) if reads_models(s))  # gradient sources that read trained models
+# (per training seed); the hypothesis models are not yet among results' trainings
 PRESET = {"results_preset.cooperation": validate.ListOf(validate.OneOf(tuple(COOPERATION))),
-          "results_preset.cooperation_episodes": validate.Int(1), "results_preset.oracle_episodes": validate.Int(0),
-          "results_preset.oracle_n_slots": validate.ListOf(validate.Int(1)),
+          "results_preset.cooperation_episodes": validate.EPISODES,
+          "results_preset.oracle_episodes": validate.Int(0, validate.MAX_EPISODES),
+          "results_preset.oracle_n_slots": validate.ListOf(validate.Int(1, validate.MAX_SLOTS)),
           # the oracle reads the running world: the interaction benchmark cannot score it, nor so place it on the figure
-          "results_preset.fidelity_sources": validate.ListOf(validate.OneOf(available(needs_world=False))),
+          "results_preset.fidelity_sources": validate.ListOf(validate.OneOf(available(needs_world=False, hypotheses=False))),
           "results_preset.verdicts": validate.OVERRIDES, "results_preset.verdicts_seed": validate.SEED}
 ORACLE = ["mpc=interactive", "method=admm", "predictor=oracle"]  # the dense row whose predictor is the world itself
 INTERACTIVE = ["mpc=interactive", "method=admm"]  # the fidelity figure's rows: the interactive step, ADMM alone

@@ -74,7 +74,7 @@ def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
         source = name.split(" ", 1)[0]  # the row name's gradient source (label)
         suffix = compare.scored_as(source)
         grad = (np.nan,) * 3 if suffix is None else gradients[names[suffix]]["ramp_grad_rel_err"]
-        rows.append({"gradients": name, "method": method, "step_ms_median": r["step_ms_median"],
+        rows.append({"gradients": name, "method": method, "step_median_ms": r["step_ms_median"],
                      "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],
                      **dict(zip((f"ramp_grad_rel_err{e}" for e in ENDS), grad)), **base,
                      "react_corr_jac": inter.get(source, {}).get("react_corr_jac", (np.nan,))[0],
@@ -82,39 +82,55 @@ def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
     compare.plot(pd.DataFrame(rows), path)
 
 
+PER_PANEL = 4  # planner rows a panel draws beside the two ceilings: at most six series a panel
+
+
 def cooperation_plot(rates: dict, levels, path: Path):
     """Courteous-merge rate (%) against cooperation level, a line per row ({name: {level: rate()}}), Wilson 95%
-    intervals as error bars; the ceilings dashed."""
+    intervals as error bars, PER_PANEL planner rows a panel with the ceilings (dashed) in each; each panel says how many
+    worlds a level holds."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9.5, 4.5))
+    ceilings = [n for n in rates if "ceiling" in n]
+    rows = [n for n in rates if n not in ceilings]
+    panels = [rows[i : i + PER_PANEL] for i in range(0, len(rows), PER_PANEL)] or [[]]
+    cols = min(2, len(panels))
+    fig, axes = plt.subplots(-(-len(panels) // cols), cols, figsize=(6.5 * cols, 4.2 * -(-len(panels) // cols)),
+                             squeeze=False, sharey=True)
     x = np.arange(len(levels))
-    colors = plt.cm.tab20(np.linspace(0, 1, max(len(rates), 2)))  # a row each: more rows than the default cycle's 10
-    for i, (name, v) in enumerate(rates.items()):
-        y = np.array([v[c]["courteous"] for c in levels]) * 100
-        err = np.nan_to_num(np.abs(np.vstack([y - [100 * v[c]["courteous_lo"] for c in levels],
-                                              [100 * v[c]["courteous_hi"] for c in levels] - y])))
-        shift = (i - (len(rates) - 1) / 2) * 0.02  # side by side: intervals at one level stay readable
-        ax.errorbar(x + shift, y, yerr=err, capsize=3, marker="o", ms=4, label=name,
-                    ls="--" if "ceiling" in name else "-", color="k" if name == "ceiling" else colors[i])
-    ax.set_xticks(x, levels)
-    ax.set(xlabel="cooperation (scenario.cooperation)", ylabel="courteous merges (%)", ylim=(-3, 103),
-           title="dense traffic: courteous merges against cooperation, 95% CI")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax.grid(alpha=0.3)
+    for ax, names in zip(axes.flat, panels):
+        for i, name in enumerate([*ceilings, *names]):
+            v = rates[name]
+            y = np.array([v[c]["courteous"] for c in levels]) * 100
+            err = np.nan_to_num(np.abs(np.vstack([y - [100 * v[c]["courteous_lo"] for c in levels],
+                                                  [100 * v[c]["courteous_hi"] for c in levels] - y])))
+            shift = (i - len(names) / 2) * 0.03  # side by side: intervals at one level stay readable
+            ax.errorbar(x + shift, y, yerr=err, capsize=3, marker="o", ms=4, label=name,
+                        ls="--" if name in ceilings else "-", color=("k", "0.5")[i] if name in ceilings else f"C{i}")
+        n = sorted({rates[name][c]["n"] for name in [*ceilings, *names] for c in levels})
+        ax.set_xticks(x, levels)
+        ax.set(xlabel="cooperation (scenario.cooperation)", ylabel="courteous merges (% of worlds)", ylim=(-3, 103),
+               title=f"{n[0]}{'' if n[0] == n[-1] else f'-{n[-1]}'} dense worlds a level")
+        ax.legend(fontsize=7, loc="best")
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    fig.suptitle("dense traffic: courteous merges against cooperation, 95% Wilson intervals", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def fidelity_plot(points: dict, rhos: dict, where: dict, oracle: dict | None, path: Path):
-    """Courteous-merge rate (%) and t_merge (steps) against fidelity, a column per score of rhos (brake_auc, react_corr,
-    good_kept), labelled with where it comes from ({score: its job}): a point per predictor ({name: {score: (mean, lo,
-    hi), "row": outcomes row}}) with its 95% intervals both ways; Spearman's rho of each score ({score: (rho, lo, hi)})
-    in its title; the oracle's rate (a row, or None), which the scores cannot rank, as a dashed line."""
+def fidelity_plot(points: dict, rhos: dict, where: dict, oracle: dict | None, path: Path, worlds: str = "dense worlds",
+                  dt: float = 0.2):
+    """Courteous-merge rate (%) and t_merge (s, dt a step) against fidelity, a column per score of rhos (brake_auc,
+    react_corr, good_kept), each x axis saying where its score is measured ({score: its job and worlds}), the y axes the
+    planner's `worlds`: a point per predictor ({name: {score: (mean, lo, hi), "row": outcomes row}}) with its 95%
+    intervals both ways; Spearman's rho of each score ({score: (rho, lo, hi)}) in its title; the oracle's rate (a row,
+    or None), which the scores cannot rank, as a dashed line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -123,8 +139,8 @@ def fidelity_plot(points: dict, rhos: dict, where: dict, oracle: dict | None, pa
     fig, axes = plt.subplots(2, len(rhos), figsize=(5.2 * len(rhos), 7.5), squeeze=False)
     colors = plt.cm.tab10(np.arange(len(points)) % 10)
     for j, (score, (rho, lo, hi)) in enumerate(rhos.items()):
-        for i, (key, scale, ylabel) in enumerate((("courteous", 100.0, "courteous merges (%)"),
-                                                  ("t_merge", 1.0, "t_merge (steps of 0.2 s), courteous merges"))):
+        for i, (key, scale, ylabel) in enumerate((("courteous", 100.0, f"courteous merges (% of {worlds})"),
+                                                  ("t_merge", dt, "t_merge (s), courteous merges"))):
             ax = axes[i, j]
             for c, (name, p) in zip(colors, points.items()):
                 x, (y, ylo, yhi) = p[score], (scale * p["row"][key + e] for e in ("", "_lo", "_hi"))
@@ -135,11 +151,12 @@ def fidelity_plot(points: dict, rhos: dict, where: dict, oracle: dict | None, pa
             if oracle is not None and i == 0:
                 ax.axhline(100 * oracle["courteous"], color="k", ls="--", lw=1,
                            label=f"oracle interactive ({oracle['episodes']} worlds; not scored)")
-            ax.set(xlabel=f"{score} ({where[score]})", ylabel=ylabel)
+            ax.set(xlabel=f"{score} (measured on: {where[score]})", ylabel=ylabel)
             ax.grid(alpha=0.3)
         axes[0, j].set_title(f"Spearman's rho = {compare.fmt(rho, '.2f', lo, hi)} (95% CI over worlds)", fontsize=9)
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle("the interactive step: planning outcome against the predictor's fidelity, 95% CI")
+    fig.suptitle(f"the interactive step: outcome on {worlds} against the predictor's fidelity, measured on other worlds "
+                 "(each x axis), 95% CI", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

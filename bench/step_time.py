@@ -2,8 +2,8 @@
 beside the QP floor (the same ADMM with the safety linearisation frozen: no network calls, driven from Python as the
 surrogate's and the teacher's solves are; cv and the student solve in one compiled call, below it) and the full-NLP baseline
 (`solver=ipopt`: the same step as one CasADi NLP solved by IPOPT, from the same start) for every predictor it can write
-(cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also with the reference core
-(`<source>-ref`: mpc.admm.core=reference, numpy and OSQP), at a longer horizon (`<source>-T16`) and with the multi-start
+(cv, analytic, student), with ADMM's speed-up over it and the cost gap; some sources also at a longer horizon
+(`<source>-T16`) and with the multi-start
 steps (`<source>-courteous`, `<source>-interactive`: mpc=courteous, mpc=interactive); each row also per scenario family of the states (two_lane, three_lane, held-out
 dense worlds); then a profile of where a step's time goes (the one-call ADMM solve, other compiled kernels, DAQP solves,
 Python), the paper step's of step_time.profile and the multi-start steps' of step_time.courteous and .interactive, each also split in
@@ -11,7 +11,7 @@ three (compiled solve, predictor calls, Python); logged to MLflow (`bench`).
 
     python -m bench.step_time [step_time.repeats=3] [states.per_scenario=15] [models_dir=models]   (conf/bench.yaml)
 
-Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair (the -ref,
+Sources are timed round-robin state by state, so a busy machine slows them alike and the ratios stay fair (the
 -courteous, -interactive and -T16 rows are timed after them, round-robin among themselves); repeats pass over all the states again.
 The cost gap
 is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
@@ -90,7 +90,7 @@ def sources(models_dir) -> dict:
     models; the ones that differentiate any predictor (teacher autodiff, fd) over the analytic predictor (with its exact
     Jacobians as `analytic`) where the models are missing, the others then skipped."""
     out = {}
-    for name in available(needs_world=False):
+    for name in available(needs_world=False, hypotheses=False):
         try:
             out[name] = source(name, models_dir)  # onnxruntime sessions run on one thread already
         except UserError as e:
@@ -160,11 +160,10 @@ def steps_with(srcs: dict, names, states, overrides: tuple, repeats: int, suffix
 
 
 def variants(cfg: DictConfig, srcs: dict, states) -> dict:
-    """The sources of cfg.step_time.reference with mpc.admm.core=reference (`<name>-ref`), of cfg.step_time.<option>
-    with mpc=<option> for each multi-start step of MULTI (`<name>-<option>`) and of cfg.step_time.horizon at its T_p
+    """The sources of cfg.step_time.<option> with mpc=<option> for each multi-start step of MULTI (`<name>-<option>`) and of cfg.step_time.horizon at its T_p
     (`<name>-T<T_p>`, on states collected at that horizon beside cfg.states.path)."""
     st, h = cfg.step_time, cfg.step_time.horizon
-    out = steps_with(srcs, [n for n in st.reference if n in srcs], states, ("mpc.admm.core=reference",), st.repeats, "-ref")
+    out = {}
     for option in MULTI:
         out.update(steps_with(srcs, [n for n in st[option] if n in srcs], states, (f"mpc={option}",), st.repeats,
                               f"-{option}"))
@@ -184,11 +183,11 @@ def cost_gap(J_admm, J_ipopt) -> np.ndarray:
 
 
 def kernels() -> set:
-    """The profile keys (file, line, name) of the numba kernels (the compiled core's, the interactive search's): cProfile sees a dispatcher call as its
-    Python function's, and a call of its compiled entry point (planner.jit_admm.typed_call) as a built-in method's."""
-    from planner import daqp_qp, jit_admm, jit_chase, jit_interactive, jit_rollout, jit_zstep
+    """The profile keys (file, line, name) of the numba kernels (the ADMM solve's, the interactive search's): cProfile sees a dispatcher call as its
+    Python function's, and a call of its compiled entry point (planner.admm.typed_call) as a built-in method's."""
+    from planner import admm, daqp_qp, jit_chase, jit_interactive, jit_rollout, safety, zstep
 
-    funcs = [f.py_func for m in (daqp_qp, jit_admm, jit_chase, jit_interactive, jit_rollout, jit_zstep)
+    funcs = [f.py_func for m in (admm, daqp_qp, jit_chase, jit_interactive, jit_rollout, safety, zstep)
              for f in vars(m).values() if hasattr(f, "py_func")]
     return ({(f.__code__.co_filename, f.__code__.co_firstlineno, f.__name__) for f in funcs}
             | {("~", 0, f"<built-in method {f.__module__}.{f.__name__}>") for f in funcs})
@@ -217,13 +216,14 @@ def part(key, compiled=frozenset()) -> str:
 def profile(step, src, s_of, states) -> tuple[dict, dict]:
     """Where one source's MPC step spends its time: ({part: ms per step of own time}, {network calls, OSQP and DAQP
     solves, ADMM solves in compiled calls and those calls: per step}) under cProfile (which inflates Python-heavy parts; the split, not the total, is what it shows)."""
-    from planner import daqp_qp, jit_admm
+    from planner import admm as solver
+    from planner import daqp_qp
 
-    prof, solves, admm = cProfile.Profile(), int(daqp_qp.SOLVES[0]), int(jit_admm.SOLVES[0])
+    prof, solves, admm = cProfile.Profile(), int(daqp_qp.SOLVES[0]), int(solver.SOLVES[0])
     for state in states:
         prof.runcall(step, s_of(state.scenario), state.obs, src, state.warm)
     solves = int(daqp_qp.SOLVES[0]) - solves  # counted inside the compiled calls too, which cProfile cannot see into
-    admm = int(jit_admm.SOLVES[0]) - admm  # a compiled call may hold several solves (a multi-start step's)
+    admm = int(solver.SOLVES[0]) - admm  # a compiled call may hold several solves (a multi-start step's)
     calls = defaultdict(float, {"DAQP solves": solves / len(states)} if solves else {})
     calls.update({"one-call ADMM solves": admm / len(states)} if admm else {})
     stats = pstats.Stats(prof).stats  # {(file, line, name): (primitive calls, calls, own s, cumulative s, callers)}
@@ -316,7 +316,7 @@ def table(timings: dict, srcs: dict, metrics: dict, states, st: DictConfig) -> s
              f"fastest of {st.repeats}",
              f"{'source':>19} {'predictor':>10} {'median ms':>10} {'p95 ms':>10} {'p99 ms':>10} {'ADMM iters':>11} {'fallbacks':>10}"]
     for name in timings:
-        base = re.sub(f"-(ref|{'|'.join(MULTI)}|T\\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -ref, ... rows
+        base = re.sub(f"-({'|'.join(MULTI)}|T\\d+)$", "", name.removeprefix("ipopt-"))  # the source of ipopt-, -courteous, ... rows
         pred = srcs[base].predictor.name if base in srcs else "frozen"
         lines.append(f"{name:>19} {pred:>10} {metrics[f'{name}_ms_median']:>10.1f} {metrics[f'{name}_ms_p95']:>10.1f} {metrics[f'{name}_ms_p99']:>10.1f} "
                      f"{metrics[f'{name}_iters_mean']:>11.1f} {metrics[f'{name}_fallbacks']:>10.0f}")

@@ -50,10 +50,10 @@ from planner.gradients import available
 FORCED = 2.0  # m/s^2: below this the world's drivers brake for nothing much (issue 44's false-alarm definition)
 SCHEMA = {"sources": validate.ListOf(validate.GRADIENT_OPTIONS), "planner": validate.ListOf(validate.Text()),
           "models_dir": validate.Text(), "out_dir": validate.Text(), "seed_offset": validate.SEED,
-          "worlds": validate.Int(1), "every": validate.Int(1), "drive": validate.GRADIENT_OPTIONS,
+          "worlds": validate.EPISODES, "every": validate.Int(1), "drive": validate.GRADIENT_OPTIONS,
           "resamples": validate.Int(1)}
 VARIANT = ("name", "gradients", "models_dir")  # the keys of a variant
-JUDGE = validate.OneOf(tuple(available(needs_world=False)))  # a variant's source: the oracle is the reference, not a judge
+JUDGE = validate.OneOf(tuple(available(needs_world=False, hypotheses=False)))  # a variant's source: the oracle is the reference, not a judge
 
 
 def variants(cfg) -> list:
@@ -98,16 +98,17 @@ def sources(cfg) -> dict:
 def verdicts(source, s, obs, plans) -> tuple:
     """(good merge (K,), merges within the horizon (K,), braking (K,) m/s^2, order, unsafe (K,): b_i < 0, unsafe only
     once merged (K,), unsafe first beyond T_p (K,)) of the K candidate plans (Delta, alpha, Z) as `source` judges them
-    (Interactive.judge's steps)."""
-    values = s.strategy.predict(obs, source, plans[2])  # kept, to say where a predicted collision comes
-    judged = s.strategy.verdicts(s, obs, values, *plans)
+    (planner.strategy.Judge's steps)."""
+    judge = s.strategy.judge(s)
+    values = judge.predict(obs, source, plans[2])  # kept, to say where a predicted collision comes
+    judged = judge.verdicts(s, obs, values, *plans)
     merge = np.array([j.merge for j in judged])
-    merges = merge < s.strategy.never(s)
-    good = merges & [s.strategy.acceptable(s, j) for j in judged]
+    merges = merge < judge.never
+    good = merges & [judge.acceptable(s, j) for j in judged]
     inside = np.array([(b_i(v, s.R, s.stretch, s.shape) < 0.0).any(axis=0) for v in values])  # (K, H): someone inside
     unsafe = inside.any(axis=1)
     first = inside.argmax(axis=1) + 1  # steps count from 1, as Judged.merge
-    return (good, merges, np.array([j.braking for j in judged]), s.strategy.order(s, judged), unsafe,
+    return (good, merges, np.array([j.braking for j in judged]), judge.order(s, judged), unsafe,
             unsafe & (first >= merge), unsafe & (first > s.T_p))
 
 
@@ -138,7 +139,7 @@ def run(cfg, judges=None) -> dict:
         for world, seen, u_prev in visited(cfg, driver, seed):
             obs = mpc.Observation(world.states()[0], u_prev, seen.history)
             s = judges["oracle"][1]
-            plans = s.strategy.plans(s, obs, None)[1:4]
+            plans = s.strategy.open_loop.plans(s, obs, None)[1:4]
             judges["oracle"][0].predictor.world, judges["oracle"][0].predictor.ids = world, seen.ids
             true_good, true_merge, true_brake, *_ = verdicts(*judges["oracle"], obs, plans)
             for name, (source, s_) in judges.items():
@@ -199,7 +200,7 @@ def main(overrides=()) -> dict:
     cfg = job_config("verdicts", overrides)
     validate.check(cfg, SCHEMA)
     judges = sources(cfg)  # a bad source or variant fails before the MLflow run opens
-    with mlflow_run("verdicts", cfg):
+    with mlflow_run("verdicts", cfg, run_name=f"verdicts-{cfg.drive}-worlds{cfg.worlds}-from{cfg.seed_offset}"):
         table = run(cfg, judges)
         mlflow.log_metrics({f"{name}.{k}": v for name, r in table.items() for k, v in r.items() if np.isfinite(v)})
         mlflow.log_artifact(str(Path(cfg.out_dir) / "verdicts.csv"))

@@ -1,16 +1,20 @@
 """What every job shares: one-line user errors, stop signals, atomic writes, and MLflow runs that log their whole config."""
 import contextlib
+import difflib
 import errno
 import fcntl
+import mmap
 import os
 import shutil
 import signal
 import sys
 import tempfile
 import threading
+import uuid
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import InstantiationException
@@ -62,12 +66,25 @@ def job_groups(choices) -> str:
     """--help's list of a job's config groups: each group of its defaults list with its options and the chosen one."""
     lines = []
     for group, chosen in choices.items():
-        if not group.startswith("hydra/") and chosen is not None:
-            lines.append(f"{group}: {' | '.join(options(group))}  (now {chosen})")
+        if not group.startswith("hydra/"):
+            lines.append(f"{group}: {' | '.join(options(group))}  (now {chosen or 'none'})")
     return "\n".join(lines) or "none: every setting is a key below"
 
 
+def job_keys(config_name: str, keys, _root_) -> str:
+    """--help's keys of job `config_name`: each of keys[config_name] ({key: meaning}) as `key=<value now>: meaning`, a
+    group by its chosen option; a job without an entry: its top-level settings with their values."""
+    chosen = _root_.hydra.runtime.choices
+    value = lambda k: chosen[k] if k in chosen else OmegaConf.select(_root_, k, default="?")
+    mine = keys.get(config_name) if keys is not None else None
+    if mine is None:
+        return "\n".join(f"{k}={v}" for k, v in _root_.items() if k != "hydra" and not OmegaConf.is_dict(v))
+    short = lambda v: (str(v)[:37] + "...") if len(str(v)) > 40 else str(v)
+    return "\n".join(f"{k}={short(value(k))}: {meaning}" for k, meaning in mine.items())
+
+
 OmegaConf.register_new_resolver("job_groups", job_groups, replace=True)  # used by conf/hydra/help/job.yaml
+OmegaConf.register_new_resolver("job_keys", job_keys, replace=True)
 
 
 class UserError(Exception):
@@ -88,7 +105,9 @@ def check_groups(argv):
             continue
         for v in value.split(","):
             if v not in choices:
-                raise UserError(f"unknown {key} '{v}'; choose one of {', '.join(choices)}")
+                near = difflib.get_close_matches(v, choices, n=1)
+                raise UserError(f"unknown {key} '{v}'; " + (f"did you mean {key}={near[0]}? (choose one of {', '.join(choices)})"
+                                                            if near else f"choose one of {', '.join(choices)}"))
 
 
 def check_overrides(config_name: str, argv) -> None:
@@ -105,8 +124,33 @@ def check_overrides(config_name: str, argv) -> None:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             compose(config_name, overrides=list(argv))
     except (HydraException, OmegaConfBaseException) as e:
+        unknown = misspelt(config_name, argv)
+        if unknown:
+            raise UserError(unknown) from None
         cause = e.__cause__ if isinstance(e.__cause__, OmegaConfBaseException) else None
         raise UserError(" ".join(str(x).splitlines()[0].rstrip(".") + "." for x in (e, cause) if x is not None)) from None
+
+
+def leaf_keys(node, prefix: str = "") -> list[str]:
+    """The dotted keys of a nested dict's leaves."""
+    if not isinstance(node, dict):
+        return [prefix[:-1]]
+    return [k for key, v in node.items() for k in leaf_keys(v, f"{prefix}{key}.")]
+
+
+def misspelt(config_name: str, argv) -> str | None:
+    """'unknown key K; did you mean N?' for the first override of argv whose key is neither a key of the job's default
+    config nor a config group, N the nearest of those (difflib); None when every key exists."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name)
+    keys = [*leaf_keys(OmegaConf.to_container(cfg, resolve=False)), *(p.name for p in Path(CONF_DIR).iterdir() if p.is_dir())]
+    for a in argv:
+        key = a.lstrip("+~").partition("=")[0]
+        if a.startswith("+") or key in keys or any(k.startswith(f"{key}.") for k in keys):
+            continue
+        near = difflib.get_close_matches(key, keys, n=1, cutoff=0.6)
+        return f"unknown key '{key}'" + (f"; did you mean {near[0]}?" if near else f" (`{config_name} --help` lists them)")
+    return None
 
 
 class Stopped(BaseException):
@@ -122,10 +166,47 @@ RETRY_S = 0.005  # s: how soon a signal held back inside a compiled call is trie
 _DEFERRED = []  # non-empty inside uninterrupted(): a stop signal is recorded there and raised at its end
 
 
+STOPS = (int(signal.SIGINT), int(signal.SIGTERM))  # the signals that stop a job
+SIGNAL_BYTES = 4096  # signals a compiled call can see arrive (one byte each) between two stops consumed
+
+
+def _signal_file() -> tuple[int, np.ndarray]:
+    """A memory file (non-blocking, as signal.set_wakeup_fd needs) and its bytes as an array: guarded makes it the
+    wakeup fd, to which Python's C-level handler writes each handled signal's number at once, one byte after another,
+    also while a compiled call holds the interpreter; the long compiled loops (planner.zstep.stop_requested) read
+    the array, passed as an argument (a numba global is frozen as a constant), and return early."""
+    fd = os.memfd_create("signals", os.MFD_CLOEXEC)
+    os.ftruncate(fd, SIGNAL_BYTES)
+    os.set_blocking(fd, False)
+    return fd, np.frombuffer(mmap.mmap(fd, SIGNAL_BYTES), np.uint8)
+
+
+_SIGNAL_FD, SIGNALS = _signal_file()
+
+
+def _clear_signals() -> None:
+    """SIGNALS empty and the next signal's byte written at its start: what stopped a job stops nothing after it."""
+    os.lseek(_SIGNAL_FD, 0, os.SEEK_SET)
+    SIGNALS[:] = 0
+
+
+def _unshare_signals() -> None:
+    """In a forked child, a signal file of its own (a fork shares the parent's), its wakeup fd where the parent's was:
+    neither stops the other's compiled calls."""
+    global _SIGNAL_FD, SIGNALS
+    wakeup = signal.set_wakeup_fd(-1)
+    parent, (_SIGNAL_FD, SIGNALS) = _SIGNAL_FD, _signal_file()
+    signal.set_wakeup_fd(_SIGNAL_FD if wakeup == parent else wakeup)
+    os.close(parent)
+
+
+os.register_at_fork(after_in_child=_unshare_signals)
+
+
 def _in_numba_callback(frame) -> bool:
     """Whether `frame` runs inside numba's unpickler, which compiled code calls back into Python (to build an exception
     or a constant): an exception raised there is lost by the compiled caller (SystemError "returned a result with an
-    exception set") or crashes it (a segmentation fault in planner.jit_admm's one-call solve)."""
+    exception set") or crashes it (a segmentation fault in planner.admm's one-call solve)."""
     serialize = sys.modules.get("numba.core.serialize")
     while serialize is not None and frame is not None:
         if frame.f_code.co_filename == serialize.__file__:
@@ -222,7 +303,11 @@ def guarded(fn):
     def run(*args, **kwargs):
         main = threading.current_thread() is threading.main_thread()
         _STOPPED.clear()  # a job starts unstopped, whatever stopped an earlier one in this process
+        MODEL_FILES.clear()  # the model files this job reads, not those of a job run before it in this process
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
+        if main:
+            _clear_signals()
+            wakeup = signal.set_wakeup_fd(_SIGNAL_FD)
         try:
             return fn(*args, **kwargs)
         except UserError as e:
@@ -245,7 +330,9 @@ def guarded(fn):
             for s, handler in previous.items():
                 signal.signal(s, handler)
             if main:
+                signal.set_wakeup_fd(wakeup)
                 _STOPPED.clear()  # what stopped this job stops nothing after it (the next job, a test)
+                _clear_signals()
 
     run.__name__, run.__doc__ = fn.__name__, fn.__doc__
     return run
@@ -273,9 +360,148 @@ def flatten(cfg: DictConfig) -> dict:
     return out
 
 
+def logged_params(cfg: DictConfig) -> dict:
+    """What an MLflow run logs of its config (the whole of it is the run's config.yaml): inside a Hydra job the chosen
+    option of each config group, every top-level setting and each nested key the command line set; outside one (a test,
+    a job composed in-process) every key. Hydra's own keys (_target_, _partial_, ...) never."""
+    from hydra.core.hydra_config import HydraConfig
+
+    flat = {k: v for k, v in flatten(cfg).items() if not k.rpartition(".")[2].startswith("_")}
+    if not HydraConfig.initialized() or not is_job_config(cfg):
+        return flat
+    hc = HydraConfig.get()
+    chosen = {g: str(c) for g, c in hc.runtime.choices.items() if not g.startswith("hydra/") and c is not None}
+    set_keys = [k for k in (o.split("=", 1)[0].lstrip("+~") for o in hc.overrides.task) if k not in chosen]
+    return {**chosen, **{k: v for k, v in flat.items()
+                         if "." not in k or any(k == o or k.startswith(f"{o}.") for o in set_keys)}}
+
+
+def is_job_config(cfg: DictConfig) -> bool:
+    """Whether `cfg` is the running Hydra job's own config (its top-level keys those of conf/<job>.yaml and its groups),
+    not one a job composed for another it runs in-process (`results` running `planner`)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    primary = OmegaConf.load(Path(CONF_DIR) / f"{HydraConfig.get().job.config_name}.yaml")
+    groups = {g for g in HydraConfig.get().runtime.choices if "/" not in g}
+    own = set(primary) - {"defaults", "hydra"}
+    return own <= set(cfg) <= own | groups
+
+
+def command_overrides() -> list[str]:
+    """The running Hydra job's command-line overrides (none outside a Hydra job)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+
+
+MODEL_FILES = {}  # {file name: sha256} of every model file the running job has read (model_file), logged on its runs
+
+
+def sha256(path) -> str:
+    """The hex SHA-256 of a file's bytes: what ties a file made from another (a certificate, a surrogate) to that one."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def model_file(path) -> Path:
+    """`path`, recorded with its sha256 as a model file this process read: each MLflow run of the process logs it as
+    the param sha256.<file name> (<file name>.2, .3 for further files of that name with other bytes: a judge's)."""
+    path = Path(path)
+    digest, key, n = sha256(path), path.name, 1
+    while MODEL_FILES.get(key, digest) != digest:
+        n += 1
+        key = f"{path.name}.{n}"
+    MODEL_FILES[key] = digest
+    return path
+
+
+def made_models(paths) -> None:
+    """Tag the active MLflow run as the maker of model files `paths` (tag sha256.<file name>: how a run that reads one
+    finds the run that made it) and log them as artifacts under models/ (a runs:/ models_dir downloads them)."""
+    import mlflow
+
+    for p in map(Path, paths):
+        mlflow.set_tag(f"sha256.{p.name}", sha256(p))
+        mlflow.log_artifact(str(p), "models")
+
+
+def model_runs(files: dict, experiments=("distill", "surrogate")) -> dict:
+    """{file name: the newest finished run of `experiments` that made a file of these bytes} for {file name: sha256}
+    (a name with a .2 suffix is its base file's); a file no logged run made is left out."""
+    import mlflow
+
+    experiments = [e for e in experiments if mlflow.get_experiment_by_name(e) is not None]
+    found = {}
+    for key, digest in files.items() if experiments else ():
+        name = key if key.count(".") < 2 or not key.rpartition(".")[2].isdigit() else key.rpartition(".")[0]
+        runs = mlflow.search_runs(experiment_names=list(experiments), filter_string=f"tags.`sha256.{name}` = '{digest}' "
+                                  "and attributes.status = 'FINISHED'", order_by=["attributes.start_time DESC"],
+                                  max_results=1, output_format="list")
+        if runs:
+            found[key] = runs[0]
+    return found
+
+
+def models_cache() -> Path:
+    """Where a runs:/ or models:/ models_dir is downloaded: beside a SQLite store (models_cache/), else the user's cache."""
+    uri = tracking_uri()
+    if uri.startswith("sqlite:///"):
+        return Path(uri[len("sqlite:///"):]).parent / "models_cache"
+    return Path.home() / ".cache" / "admm-nnmpc" / "models"
+
+
+def local_models_dir(models_dir: str) -> str:
+    """A folder of model files for `models_dir`: itself, or for runs:/<run id>[/<path>] or models:/<name>/<version> (a
+    registered model, or models:/<model id> of a logged one) the model run's models/ artifacts, downloaded once to
+    models_cache()/<run id> (whole or not at all); one UserError when the run or model does not exist or has none."""
+    models_dir = str(models_dir)
+    if not models_dir.startswith(("runs:/", "models:/")):
+        return models_dir
+    import mlflow
+
+    uri = tracking_uri()
+    if uri.startswith("sqlite:///"):
+        with store_lock(uri):  # a new store built whole, as every job's (open_experiment)
+            create_store(uri)
+    mlflow.set_tracking_uri(uri)
+    client = mlflow.MlflowClient()
+    try:
+        if models_dir.startswith("runs:/"):
+            run_id, _, sub = models_dir[len("runs:/"):].strip("/").partition("/")
+        else:
+            name, _, version = models_dir[len("models:/"):].strip("/").partition("/")
+            if version:
+                mv = client.get_model_version(name, version) if version.isdigit() else \
+                    client.get_model_version_by_alias(name, version.lstrip("@"))
+                run_id = mv.run_id
+            else:
+                run_id = client.get_logged_model(name).source_run_id
+            sub = ""
+        sub = sub or "models"
+        dest = models_cache() / run_id / sub
+        if not dest.is_dir():
+            tmp = dest.parent / f".download-{os.getpid()}"
+            tmp.mkdir(parents=True, exist_ok=True)
+            os.environ["MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"] = "false"  # one line per job, not a bar per file
+            try:
+                mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=sub, dst_path=str(tmp))
+                os.replace(tmp / sub, dest)
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+    except Exception as e:  # MLflow's own error types for a missing run, model or artifact
+        why = (str(e).splitlines() or [""])[0][:200]
+        raise UserError(f"models_dir={models_dir}: no model files there in the MLflow store {tracking_uri()} "
+                        f"({type(e).__name__}: {why}); pass a folder or a run that logged models/") from None
+    if not dest.is_dir() or not any(dest.iterdir()):
+        raise UserError(f"models_dir={models_dir}: run {run_id} logged no model files under {sub}/")
+    return str(dest)
+
+
 def tracking_uri() -> str:
-    """The MLflow store: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db in the working directory."""
-    return os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI)
+    """The MLflow store: $MLFLOW_TRACKING_URI, else (unset or empty) sqlite:///mlflow.db in the working directory."""
+    return os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_TRACKING_URI
 
 
 @contextlib.contextmanager
@@ -306,16 +532,33 @@ def create_store(uri: str) -> None:
     db = Path(uri[len("sqlite:///"):])
     if db.exists() and db.stat().st_size:
         return
-    tmp = db.with_name(f".{db.name}.creating")
-    leftovers = [tmp, *(tmp.with_name(tmp.name + s) for s in ("-journal", "-wal", "-shm"))]  # SQLite's own beside it
-    for f in leftovers:  # a creator killed outright (SIGKILL) left them; the lock says nobody else is writing them
-        f.unlink(missing_ok=True)
+    db = db.resolve()
+    for f in db.parent.glob(f".{db.name}.creating-*"):  # a creator killed outright (SIGKILL) left them (with SQLite's
+        f.unlink(missing_ok=True)  # -journal beside them); the lock says nobody else is writing them
+    # A name of its own each time: MLflow keeps the store of a URI it has opened, so a second store created at a name
+    # already used in this process (another folder, or the same one after a removal) would never be written.
+    tmp = db.with_name(f".{db.name}.creating-{os.getpid()}-{uuid.uuid4().hex}")
     try:
         MlflowClient(f"sqlite:///{tmp}").search_experiments(max_results=1)
         os.replace(tmp, db)
     finally:
-        for f in leftovers:
+        for f in db.parent.glob(f"{tmp.name}*"):
             f.unlink(missing_ok=True)
+
+
+def artifacts_beside(db: Path, experiment_id: str) -> None:
+    """Point a SQLite store's experiment that holds no runs yet at <the store's folder>/mlruns/<id>, written as the
+    store's own path is (relative for the default sqlite:///mlflow.db): MLflow would write the absolute path of the
+    folder the first job ran in, so a moved or copied store would lose its artifacts. Call under store_lock."""
+    import sqlite3
+
+    want = str(db.parent / "mlruns" / experiment_id)
+    with contextlib.closing(sqlite3.connect(db)) as con, con:
+        (location,), (runs,) = (con.execute("SELECT artifact_location FROM experiments WHERE experiment_id = ?",
+                                            (experiment_id,)).fetchone(),
+                                con.execute("SELECT count(*) FROM runs WHERE experiment_id = ?", (experiment_id,)).fetchone())
+        if location != want and not runs:
+            con.execute("UPDATE experiments SET artifact_location = ? WHERE experiment_id = ?", (want, experiment_id))
 
 
 STORE_TIMEOUT_S = 10  # how long open_experiment waits for a tracking server before the job gives up
@@ -340,8 +583,16 @@ def open_experiment(experiment: str) -> str:
                 if not os.access(db.parent, os.W_OK) or (db.exists() and not os.access(db, os.W_OK)):
                     raise OSError(f"{db} is not writable")
                 create_store(uri)
-            mlflow.set_tracking_uri(uri)
-            mlflow.set_experiment(experiment)
+                # MLflow keeps the store of every URI it opened: a relative one, once opened in another folder in this
+                # process, would be that folder's file
+                mlflow.set_tracking_uri(f"sqlite:///{db.resolve()}")
+            else:
+                mlflow.set_tracking_uri(uri)
+            exp = mlflow.set_experiment(experiment)
+            if "mlflow.experimentKind" not in exp.tags:  # MLflow's UI opens it on its training runs, not GenAI traces
+                mlflow.MlflowClient().set_experiment_tag(exp.experiment_id, "mlflow.experimentKind", "custom_model_development")
+            if uri.startswith("sqlite:///"):
+                artifacts_beside(Path(uri[len("sqlite:///"):]), exp.experiment_id)
     except Exception as e:  # OSError, sqlalchemy's and MLflow's own types: the store is unusable either way
         why = (str(e).splitlines() or [""])[0][:200]
         raise UserError(f"cannot use the MLflow store {uri} ({type(e).__name__}: {why}); set MLFLOW_TRACKING_URI to a "
@@ -355,21 +606,79 @@ def open_experiment(experiment: str) -> str:
     return uri
 
 
+def git_tags() -> dict:
+    """mlflow.source.git.commit (what MLflow's UI shows as the run's source version) and git_dirty ("true" when tracked
+    files differ from it) of this checkout; none outside a git checkout (an installed copy)."""
+    import subprocess
+
+    git = ["git", "-C", str(Path(CONF_DIR).parent)]
+    try:
+        commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
+                               check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return {}
+    return {"mlflow.source.git.commit": commit, "git_dirty": str(bool(dirty)).lower()}
+
+
+def group_run(experiment: str) -> str | None:
+    """The id of the parent run of a group of jobs in `experiment`, made on first use: of $MLFLOW_RUN_GROUP (a name any
+    set of commands shares: `make demo`'s) or of the running Hydra sweep (its folder); None outside a group."""
+    import mlflow
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    group = os.environ.get("MLFLOW_RUN_GROUP")
+    if not group and HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        group = f"sweep {HydraConfig.get().sweep.dir}"
+    if not group:
+        return None
+    client = mlflow.MlflowClient()
+    exp = client.get_experiment_by_name(experiment).experiment_id
+    with store_lock(tracking_uri()):  # parallel jobs of one sweep make one parent
+        found = client.search_runs([exp], filter_string=f"tags.run_group = '{group}'", max_results=1)
+        if found:
+            return found[0].info.run_id
+        parent = client.create_run(exp, run_name=group, tags={"run_group": group, **git_tags()})
+        client.set_terminated(parent.info.run_id, "FINISHED")  # a folder of runs, not a job that could fail
+        return parent.info.run_id
+
+
+def log_model_files() -> None:
+    """Log the active run's param sha256.<file> for each model file read so far (MODEL_FILES) not yet logged."""
+    import mlflow
+
+    logged = mlflow.get_run(mlflow.active_run().info.run_id).data.params
+    new = {f"sha256.{k}": v for k, v in MODEL_FILES.items() if f"sha256.{k}" not in logged}
+    if new:
+        mlflow.log_params(new)
+
+
 @contextlib.contextmanager
 def mlflow_run(experiment: str, cfg: DictConfig, run_name: str | None = None, **params):
-    """An MLflow run in `experiment` with the flattened config and `params` logged; on exception it ends FAILED with the
-    error as a tag, or KILLED when the job was stopped (Stopped, Ctrl-C)."""
+    """An MLflow run in `experiment`, nested in the active run if any (else in its group_run), tagged with the git commit
+    and the command's overrides, with logged_params(cfg), `params` and the sha256 of every model file the process read
+    (before the run or during it); on exception it ends FAILED with the error as a tag, or KILLED when the job was
+    stopped (Stopped, Ctrl-C)."""
     import mlflow
 
     open_experiment(experiment)
-    run = mlflow.start_run(run_name=run_name)
+    nested = mlflow.active_run() is not None
+    from hydra.core.hydra_config import HydraConfig
+
+    told = command_overrides() if HydraConfig.initialized() and is_job_config(cfg) else []
+    tags = {**git_tags(), **({"overrides": " ".join(told)} if told else {})}
+    run = mlflow.start_run(run_name=run_name, nested=nested, parent_run_id=None if nested else group_run(experiment),
+                           tags=tags)
     try:
-        flat = {**flatten(cfg), **{k: str(v) for k, v in params.items()}}
+        flat = {**logged_params(cfg), **{k: str(v) for k, v in params.items()}}
         items = list(flat.items())
         for i in range(0, len(items), 100):
             mlflow.log_params(dict(items[i : i + 100]))
+        log_model_files()
         mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         yield run
+        log_model_files()
     except BaseException as e:
         mlflow.set_tag("error", f"{type(e).__name__}: {e}"[:5000])
         mlflow.end_run("KILLED" if isinstance(e, (Stopped, KeyboardInterrupt)) or stop_signal() is not None else "FAILED")

@@ -1,24 +1,30 @@
-"""The 95% intervals every reported figure is given with: Wilson for rates, Student t or a percentile bootstrap for means,
-and outcome rows (episodes, or batches of them) pooled into {metric, metric_lo, metric_hi} (planner.batch,
+"""The 95% intervals every reported figure is given with: Wilson for rates (scipy.stats.binomtest), Student t or a
+percentile bootstrap over groups then their items for means (hand-written: scipy.stats.bootstrap resamples one level
+only), and outcome rows (episodes, or batches of them) pooled into {metric, metric_lo, metric_hi} (planner.batch,
 planner.compare, bench.results)."""
-import math
 
 import numpy as np
 from scipy import stats
 
-Z95 = stats.norm.ppf(0.975)
 RATES = ("courteous", "merged", "collision")  # 0/1 per episode, a share per batch; courteous is the headline
 MEANS = ("t_merge", "C_max", "fallbacks", "b_imposed_max")  # t_merge over merged episodes only: a run that never merged logs the steps it drove
 
 
-def wilson(k: float, n: float, z: float = Z95) -> tuple[float, float]:
-    """Wilson score 95% interval (lo, hi) of a rate from k successes in n trials; (nan, nan) for n = 0."""
+def auc(p, y):
+    """Area under the ROC curve of scores p for binary labels y (Mann-Whitney U / (n1 n0)); NaN without both classes."""
+    p, y = np.asarray(p, dtype=float), np.asarray(y, dtype=bool)
+    if y.all() or not y.any():
+        return float("nan")
+    return float(stats.mannwhitneyu(p[y], p[~y]).statistic / (y.sum() * (~y).sum()))
+
+
+def wilson(k: float, n: float, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval (lo, hi) of a rate from k successes in n trials (scipy's binomtest; counts as floats are
+    rounded: a batch's rate times its episodes); (nan, nan) for n = 0."""
     if n <= 0:
         return float("nan"), float("nan")
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+    ci = stats.binomtest(round(k), round(n)).proportion_ci(confidence, method="wilson")
+    return float(ci.low), float(ci.high)
 
 
 def mean_ci(values) -> tuple[float, float, float]:
@@ -30,7 +36,7 @@ def mean_ci(values) -> tuple[float, float, float]:
     m = float(v.mean())
     if len(v) == 1:
         return m, m, m
-    half = float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    half = float(stats.t.ppf(0.975, len(v) - 1) * stats.sem(v))  # not t.interval: it is NaN for equal values
     return m, m - half, m + half
 
 

@@ -4,6 +4,7 @@
 maps a dotted key to a rule; a rule's `optional` lets the key be absent (keys only some config-group options have).
 """
 import math
+import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -12,6 +13,15 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from core.jobs import CONF_DIR, UserError, options
 
 SEED_MAX = 2**32 - 1  # numpy and Lightning seeds are unsigned 32-bit
+# Sizes bounded where memory or time would explode, each far above any recipe here (issue 74, S1):
+MAX_T_P = 200  # steps: a dense cv step cost about 16, 41 and over 300 CPU-s at T_p 100, 200, 300 (ADMM's QPs grow as T_p^3)
+MAX_EPISODES = 100_000  # a batch or a dataset holds every episode's records in memory
+MAX_STEPS = 10_000  # steps of one episode (2000 s at dt 0.2 s), each step's record held
+MAX_T_OBS = 21  # observed steps of a window
+MAX_SLOTS = 50  # other cars in a window (the dense stream has 21 cars)
+MAX_ITERS = 10_000  # solver iterations of one solve (ADMM's, a Z-step's): 50 ADMM iterations cost 20 CPU-s at T_p 200
+MAX_SAMPLES = 1_000_000  # windows or states a job draws at once (a surrogate's Jacobian label: 6.4 kB at the default window)
+CORES = len(os.sched_getaffinity(0))  # the cores this process may run on: one worker process each, every worker its own models
 
 
 @dataclass(frozen=True)
@@ -245,19 +255,23 @@ POS = Real(0, lo_open=True)  # > 0
 NONNEG = Real(0)
 PROB = Real(0, 1)
 SEED = Int(0, SEED_MAX)
-N_JOBS = Int(-1, but=(0,))  # joblib: -1 every core, never 0
+N_JOBS = Int(-1, CORES, but=(0,))  # joblib: -1 every core (of a Ray cluster too), never 0, never more processes than cores
+HORIZON = Int(1, MAX_T_P)
+EPISODES = Int(1, MAX_EPISODES)
 COST = ("lambda_div", "lambda_v", "lambda_delta", "lambda_a", "lambda_ddelta", "lambda_da")
 # the predictors that load a trained model of their own from models_dir (conf/predictor/): the ones `distill` trains
 TRAINED_PREDICTORS = tuple(n for n in options("predictor")
                            if "${models_dir}" in OmegaConf.to_yaml(OmegaConf.load(Path(CONF_DIR) / "predictor" / f"{n}.yaml")))
+# of those, the ones that give one prediction, not one per hypothesis of yielding: what a surrogate learns
+POINT_PREDICTORS = tuple(n for n in TRAINED_PREDICTORS if not n.endswith("_hyp"))
 
 PAPER = {  # conf/paper/table1.yaml, shared by distill, surrogate and planner
-    "paper.T_p": Int(1), "paper.rho": POS, **{f"paper.cost.{k}": NONNEG for k in COST},
+    "paper.T_p": HORIZON, "paper.rho": POS, **{f"paper.cost.{k}": NONNEG for k in COST},
     "paper.safety.r": POS, "paper.safety.r_i": POS, "paper.safety.eps": NONNEG, "paper.lambda_s": NONNEG,
 }
 
 SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every scenario shares, the dense stream's promise
-    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.merge_tol": POS, "scenario.x_ref": Real(), "scenario.followers": Int(1, optional=True),
+    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.merge_tol": POS, "scenario.x_ref": Real(), "scenario.platoon_x": Real(), "scenario.followers": Int(1, optional=True),
     "scenario.min_behind_s": Real(0, optional=True), "scenario.safety_stretch": Real(1, optional=True),
     "scenario.road.lanes": Int(2), **{f"scenario.road.{k}": POS for k in ("lane_width", "car_length", "car_width")},
     **{f"scenario.params.{k}": POS for k in ("dt", "l_f", "l_r")}, "scenario.v_ref": NONNEG,
@@ -270,8 +284,16 @@ SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every sce
 
 def check_scenario(cfg: DictConfig) -> None:
     """One UserError for a scenario whose values each pass SCENARIO but not together: the ego's start off the road
-    (its narrowest: the fewest lanes it may draw), or a fixed scenario without drivers."""
+    (its narrowest: the fewest lanes it may draw) or at or past the end of its lane (x_ref: an episode of no step), or a
+    fixed scenario without drivers."""
     sc = OmegaConf.to_container(cfg.scenario, resolve=True)
+    if "ego_offset_range" in sc and "beside_range" not in sc:  # random: beside the platoon's front car, offset drawn
+        start, key = sc["platoon_x"] + sc["ego_offset_range"][1], "scenario.platoon_x + scenario.ego_offset_range[1]"
+    else:  # fixed and dense: where scenario.ego puts it
+        start, key = sc["ego"]["x"], "scenario.ego.x"
+    if not start < sc["x_ref"]:
+        raise UserError(f"scenario.x_ref={sc['x_ref']:g}: the ego's lane must end ahead of its start ({key} = {start:g} m), "
+                        "or an episode ends before its first step")
     lanes = min(sc.get("lanes_choices") or [sc["road"]["lanes"]])
     half, y = sc["road"]["lane_width"] / 2, sc["ego"]["y"]
     if not -half <= y <= (lanes - 1) * 2 * half + half:
@@ -281,7 +303,8 @@ def check_scenario(cfg: DictConfig) -> None:
         raise UserError(f"scenario.drivers={sc.get('drivers')}: scenario={sc['name']} needs at least one driver to merge among")
 
 DATASET = {
-    "dataset.name": Name(), "dataset.episodes": Int(1), "dataset.steps": Int(2), "dataset.T_obs": Int(2), "dataset.n_slots": Int(1),
+    "dataset.name": Name(), "dataset.episodes": EPISODES, "dataset.steps": Int(2, MAX_STEPS), "dataset.T_obs": Int(2, MAX_T_OBS),
+    "dataset.n_slots": Int(1, MAX_SLOTS),
     "dataset.seed": SEED, "dataset.split": Fractions(3), "dataset.n_jobs": N_JOBS,
 }
 
@@ -289,10 +312,11 @@ MAKE_DATASET = {
     **DATASET, **PAPER, **SCENARIO, "out_dir": Text(), "plot_episodes": Int(0),
     **{f"dataset.policy.{k}": PROB for k in ("p_keep_lane", "p_reckless")},
     **{f"dataset.policy.{k}": Range(0) for k in ("t_start", "y_nudge", "hold", "retry_after", "need_dx", "v_change_t",
-                                                  "align_gain")},
+                                                  "align_gain", "k_y")},
     **{f"dataset.policy.{k}": Range() for k in ("dv_cruise", "dv_cruise2")},
-    "dataset.branches.points": Int(0), "dataset.branches.reach": POS, "dataset.branches.steps": Int(1),
+    "dataset.branches.points": Int(0, MAX_STEPS), "dataset.branches.reach": POS, "dataset.branches.steps": HORIZON,
     "dataset.branches.y_push": Range(0), "dataset.branches.dv": Range(0), "dataset.branches.cut_in": Bool(),
+    "dataset.branches.flip": Bool(optional=True), "dataset.branches.y_lean": Range(0, optional=True),
 }
 
 TRAINER = {
@@ -303,52 +327,50 @@ TRAINER = {
 }
 
 DISTILL = {
-    **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1, nullable=True),
+    **TRAINER, **PAPER, "model.name": OneOf(("teacher", "student", "teacher_hyp", "student_hyp")), "model.epochs": Int(1), "seed": SEED, "threads": Int(1, nullable=True),
     "eval_split": OneOf(("train", "val", "test")), "dataset_dir": Text(), "eval_dir": Text(), "models_dir": Text(), "run_dir": Text(),
     "ckpt_path": Text(nullable=True), "init_from": Text(nullable=True), "dataset.name": Name(),
     "model.data.batch_size": Int(1), "model.task.lr": POS, "model.task.weight_decay": NONNEG, "model.task.scale_m": POS,
-    "model.teacher": OneOf(("teacher",), optional=True),
+    "model.teacher": OneOf(("teacher", "teacher_hyp"), optional=True),
     **{f"model.task.{k}": Real(0, optional=True) for k in ("jac_weight", "ego_jac_weight", "spectral_weight", "rollout_weight", "contrast_weight",
-                                                              "cert_weight", "brake_weight")},
+                                                              "cert_weight", "brake_weight", "belief_weight")},
     **{f"model.task.{k}": Real(0, lo_open=True, optional=True) for k in ("rollout_scale_m", "brake_scale", "dt")},
-    "model.data.horizon": Int(1, optional=True),
+    "model.data.horizon": Int(1, MAX_T_P, optional=True),
     "model.data.perturbed_copies": Int(0, optional=True), "model.data.contrast_groups": Int(0, optional=True),
     "model.data.rollout_groups": Int(0, optional=True), "model.data.projections": Int(1, optional=True),
     "model.data.hard_braking": Real(0, lo_open=True, optional=True), "model.data.hard_weight": Real(0, lo_open=True, optional=True),
     "model.data.whole_weight": Real(0, lo_open=True, optional=True),
+    "model.data.encroached_weight": Real(0, optional=True),
     "model.data.fraction": Real(0, 1, lo_open=True, optional=True),
-    "model.certificate.samples": Int(1, optional=True), "model.certificate.fd_step_m": Real(0, lo_open=True, optional=True),
-    "model.certificate.rho_used": Real(0, lo_open=True, optional=True), "model.certificate.T_p": Int(1, optional=True),
+    "model.certificate.samples": Int(1, MAX_SAMPLES, optional=True), "model.certificate.fd_step_m": Real(0, lo_open=True, optional=True),
+    "model.certificate.rho_used": Real(0, lo_open=True, optional=True), "model.certificate.T_p": Int(1, MAX_T_P, optional=True),
     "model.certificate.planner.v_max": Real(0, lo_open=True, optional=True),
     "model.certificate.planner.y_margin": Real(0, optional=True),
 }
 
 SURROGATE = {
-    **PAPER, "source": OneOf(TRAINED_PREDICTORS), "jacobian": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
+    **PAPER, "source": OneOf(POINT_PREDICTORS), "jacobian": OneOf(("autodiff", "central")), "central_h": POS, "fused": Bool(),
     "dataset_dir": Text(), "models_dir": Text(), "seed": SEED,
-    **{f"data.{k}": Int(1) for k in ("dataset_windows", "plan_states", "val_dataset_windows", "val_plan_states",
-                                     "test_plan_states", "batch_size", "state_batch")},
+    **{f"data.{k}": Int(1, MAX_SAMPLES) for k in ("dataset_windows", "plan_states", "val_dataset_windows", "val_plan_states",
+                                                  "test_plan_states", "batch_size", "state_batch")},
     "network.hidden": Int(1), "network.depth": Int(1), "network.absolute": OneOf(("", "y", "xy")),
-    "module.lr": POS, "module.weight_decay": NONNEG, "module.composed": NONNEG, "data.iterates": Text(nullable=True), "data.iterate_states": Int(1), "data.test_iterate_episodes": Int(1),
+    "module.lr": POS, "module.weight_decay": NONNEG, "module.composed": NONNEG, "data.iterates": Text(nullable=True), "data.iterate_states": Int(1, MAX_SAMPLES), "data.test_iterate_episodes": Int(1),
     "trainer.max_epochs": Int(1), "trainer.devices": Int(1), "trainer.log_every_n_steps": Int(1),
-    "timing.repeats": Int(1), "timing.budget_s": POS, "timing.predictors": ListOf(OneOf(TRAINED_PREDICTORS)),
-    "states.T_p": Int(1), "states.shift_x": NONNEG, "states.shift_y": NONNEG, "states.p_shift": PROB,
+    "timing.repeats": Int(1), "timing.budget_s": POS, "timing.predictors": ListOf(OneOf(POINT_PREDICTORS)),
+    "states.T_p": HORIZON, "states.shift_x": NONNEG, "states.shift_y": NONNEG, "states.p_shift": PROB,
     "states.p_mid_lane_change": PROB, "states.lane_width": POS, "states.plan_y": Real(), "states.speed_factor": Range(0),
     "states.jitter": NONNEG, "states.p_jitter": PROB,
 }
 
 PLANNER = {  # the keys of a group option other options lack are optional (zstep, gradients, method, predictor)
     **PAPER, **SCENARIO, "world": OneOf(("reactive", "predictor")), "linearize": OneOf(("last_observed", "along_plan")), "seed": SEED,
-    "episodes": Int(0), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
-    "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1),
-    "T_obs": Int(2, 21), "n_slots": Int(1), "plots": Bool(), "record_dir": Text(nullable=True), "tolerate_crashes": Bool(),
-    "judges": ListOf(Text()),
+    "episodes": Int(0, MAX_EPISODES), "n_jobs": N_JOBS, "backend": OneOf(("loky", "ray")), "ray.address": Text(nullable=True),
+    "models_dir": Text(), "out_dir": Text(nullable=True), "max_steps": Int(1, MAX_STEPS),
+    "T_obs": Int(2, MAX_T_OBS), "n_slots": Int(1, MAX_SLOTS), "plots": Bool(), "record_dir": Text(nullable=True), "tolerate_crashes": Bool(),
     # mpc: the values planner.mpc.Settings and planner.strategy check on their fields, but for the nodes they take whole
-    "mpc.admm.rho": Either((POS, OneOf(("certified",)))), **{f"mpc.weights.{k}": NONNEG for k in COST},
-    "mpc.admm.osqp.eps_abs": POS, "mpc.admm.osqp.eps_rel": POS, "mpc.admm.osqp.max_iter": Int(1),
-    "mpc.admm.osqp.polishing": Bool(), "mpc.admm.osqp.adaptive_rho_interval": Int(0, optional=True),
+    "mpc.admm.rho": Either((POS, OneOf(("certified",)))), "mpc.strategy.horizon": Int(1, MAX_T_P, optional=True),
     "zstep.settings.reuse_radius": Real(0, optional=True),
-    **{f"zstep.settings.{k}": Int(1, optional=True) for k in ("max_iters", "maxit")},
+    **{f"zstep.settings.{k}": Int(1, MAX_ITERS, optional=True) for k in ("max_iters", "maxit")},
     **{f"zstep.settings.{k}": Real(0, lo_open=True, optional=True) for k in (
         "trust_radius", "min_radius", "max_radius", "tol", "slack_penalty", "slack_tol", "opt_tol", "viol_ineq_tol", "mu0",
         "infeasible_tol")},
@@ -358,7 +380,7 @@ PLANNER = {  # the keys of a group option other options lack are optional (zstep
     "gradients.h": Real(0, lo_open=True, optional=True),
     "method.nnmpc.lengths": ListOf(POS, optional=True), "method.nnmpc.accels": ListOf(Real(), optional=True),
     **{f"predictor.{k}": Real(0, lo_open=True, optional=True) for k in ("d_react", "s_lat", "s_ahead", "view", "s_view")},
-    "predictor.slowdown": Real(0, optional=True),
+    "predictor.slowdown": Real(0, optional=True), "predictor.knows": OneOf(("all", "seen", "prior"), optional=True),
 }
 
 GRADIENT_OPTIONS = OneOf(tuple(options("gradients")))  # a gradient source: an option of conf/gradients/
@@ -374,16 +396,15 @@ RESULTS = {
     "results_preset.student_step": OVERRIDES,
     **{f"results_preset.{k}": ListOf(GRADIENT_OPTIONS) for k in ("sources", "table2_sources")},
     "results_preset.scenarios": ListOf(OneOf(tuple(options("scenario")))),
-    "results_preset.episodes": Int(1), "results_preset.table2_episodes": Int(1),
+    "results_preset.episodes": EPISODES, "results_preset.table2_episodes": EPISODES,
     "results_preset.interaction_sources": ListOf(OneOf((*GRADIENT_OPTIONS.choices, "reference", "follower"))),
-    "results_preset.dense_episodes": Int(1), "results_preset.calibration_episodes": Int(1),
-    "results_preset.blind_episodes": Int(0),
+    "results_preset.dense_episodes": EPISODES, "results_preset.calibration_episodes": EPISODES,
+    "results_preset.blind_episodes": Int(0, MAX_EPISODES),
     "results_preset.calibration": ListOf(OneOf(tuple(options("scenario")))), "results_preset.ceiling": OVERRIDES,
 }
 
 COMPARE = {
     "out_dir": Text(), "experiment": Text(), "columns": ListOf(Text(), at_least=1), "ignore": ListOf(Text()),
-    "scenario": OneOf(tuple(options("scenario")), nullable=True),
 }
 
 BENCH = {
@@ -392,19 +413,18 @@ BENCH = {
     "step_time.repeats": Int(1), "step_time.courteous": ListOf(GRADIENT_OPTIONS),
     "step_time.interactive": ListOf(GRADIENT_OPTIONS),
     "step_time.profile": ListOf(GRADIENT_OPTIONS), "zstep_compare.per_scenario": Int(0),
-    "step_time.horizon.T_p": Int(1), "step_time.horizon.sources": ListOf(GRADIENT_OPTIONS),
-    "step_time.reference": ListOf(GRADIENT_OPTIONS),
+    "step_time.horizon.T_p": HORIZON, "step_time.horizon.sources": ListOf(GRADIENT_OPTIONS),
     "zstep_compare.sources": ListOf(GRADIENT_OPTIONS), "step_time.ipopt": ListOf(GRADIENT_OPTIONS),
     "step_time.ratios": ListOf(ListOf(OneOf((*GRADIENT_OPTIONS.choices, "floor")), 2)),
 }
 
 CEILING = {
-    **SCENARIO, "world": OneOf(("reactive", "predictor")), "seed": SEED, "episodes": Int(1), "n_jobs": N_JOBS,
-    "max_steps": Int(1), "out_dir": Text(nullable=True), "search.gaps": Int(0),
+    **SCENARIO, "world": OneOf(("reactive", "predictor")), "seed": SEED, "episodes": EPISODES, "n_jobs": N_JOBS,
+    "max_steps": Int(1, MAX_STEPS), "out_dir": Text(nullable=True), "search.gaps": Int(0),
     "search.y_lean": ListOf(POS, at_least=1), "search.clearance": ListOf(NONNEG, at_least=1), "search.settle": Int(0),
     "search.enter": ListOf(Int(0)), "search.dv": ListOf(Real()),
     "search.y_wait": ListOf(Real(), at_least=1), "search.accept_dv": ListOf(Real()), "blind.seed": SEED,
-    "blind.episodes": Int(0),
+    "blind.episodes": Int(0, MAX_EPISODES),
 }
 
 CROSS_WORLD = {

@@ -19,9 +19,11 @@ import copy
 from dataclasses import dataclass
 
 import numpy as np
+from omegaconf import OmegaConf
 from PIL import Image
 
-from core.jobs import UserError, build, job_config
+from core import validate
+from core.jobs import UserError, build, check_overrides, job_config, options
 from data import outcomes
 from data.scenarios import DenseScenario
 from data.world import MEMORY, Road, collided, remembered_xy
@@ -39,6 +41,11 @@ except ImportError as e:  # an optional extra: one line naming it, where a highw
     raise UserError(f"highway-env is not installed ({e.name} missing): pip install -e '.[highway]'") from None
 
 ENV_ID = "admm-nnmpc/DenseMerge-v0"
+ENV_CHECKS = {  # the env's own config (validate's rules; the scenario's are validate.SCENARIO)
+    "simulation_frequency": validate.Int(1), "policy_frequency": validate.Int(1), "duration": validate.Int(1),
+    "observation.vehicles_count": validate.Int(1, optional=True), "observation.view": validate.Real(0, lo_open=True, optional=True),
+    "speed_limit": validate.POS,
+}
 
 
 def to_ours(states_hw) -> np.ndarray:
@@ -95,6 +102,13 @@ class DenseMergeEnv(AbstractEnv):
     """The dense merge in highway-env: the scenario's start (config `scenario`: a data.scenarios.DenseScenario or a
     conf/scenario name with `overrides`), highway-env's vehicles from there; `reset(seed=k)` draws world k."""
 
+    def __init__(self, config=None, render_mode=None):
+        """highway-env's env; a render mode it has no renderer for is one UserError (its own check is a bare assert)."""
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise UserError(f"render_mode={render_mode!r}: {ENV_ID} renders {' or '.join(map(repr, self.metadata['render_modes']))}"
+                            " (or None: no rendering)")
+        super().__init__(config, render_mode)
+
     @classmethod
     def default_config(cls) -> dict:
         """highway-env's defaults with this merge's: the scenario, 5 Hz decisions over 15 Hz simulation, continuous
@@ -114,6 +128,8 @@ class DenseMergeEnv(AbstractEnv):
     def check(self):
         """One UserError for a config value this merge cannot honour."""
         c, a = self.config, self.config["action"]
+        plain = {k: c[k] for k in ("simulation_frequency", "policy_frequency", "duration", "speed_limit")}
+        validate.check(OmegaConf.create({**plain, "observation": dict(c["observation"])}), ENV_CHECKS)
         if a.get("type") != "ContinuousAction":
             raise UserError(f"action.type={a.get('type')}: {ENV_ID} takes ContinuousAction ([acceleration, steering])")
         for key in ("acceleration_range", "steering_range"):
@@ -122,8 +138,6 @@ class DenseMergeEnv(AbstractEnv):
                 raise UserError(f"action.{key}={[lo, hi]}: needs low < high")
         if c["simulation_frequency"] % c["policy_frequency"]:
             raise UserError(f"policy_frequency={c['policy_frequency']}: must divide simulation_frequency={c['simulation_frequency']}")
-        if not (isinstance(c["duration"], int) and c["duration"] > 0):
-            raise UserError(f"duration={c['duration']}: must be a positive number of decisions")
 
     def define_spaces(self):
         """highway-env's action space; our observation (its factory knows only its own types)."""
@@ -155,10 +169,19 @@ class DenseMergeEnv(AbstractEnv):
         return super().reset(seed=seed, options=options)
 
     def scenario(self) -> DenseScenario:
-        """The scenario object of config `scenario` (built from conf/scenario/ when a name is given)."""
+        """The scenario object of config `scenario` (built from conf/scenario/ when a name is given, with `overrides`, a
+        list of Hydra overrides of it such as ["scenario.x_ref=300"]; checked as the planner command checks them)."""
         sc = self.config["scenario"]
         if isinstance(sc, str):
-            sc = self.config["scenario"] = build(job_config(f"scenario/{sc}", self.config["overrides"]).scenario)
+            if sc not in options("scenario"):
+                raise UserError(f"scenario={sc}: unknown; choose one of {', '.join(options('scenario'))}")
+            overrides = self.config["overrides"]
+            if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
+                raise UserError(f"overrides={overrides!r}: a list of overrides of the scenario, such as ['scenario.x_ref=300']")
+            check_overrides(f"scenario/{sc}", overrides)
+            cfg = job_config(f"scenario/{sc}", overrides)
+            validate.check(cfg, validate.SCENARIO)
+            sc = self.config["scenario"] = build(cfg.scenario)
         if not isinstance(sc, DenseScenario):
             raise UserError(f"scenario={getattr(sc, 'name', sc)}: {ENV_ID} needs a dense scenario (a stream beside the ego)")
         return sc
@@ -221,10 +244,11 @@ class DenseMergeEnv(AbstractEnv):
         return self.merged and not self.vehicle.crashed and self.b_imposed <= self.scenario().b_safe
 
     def _reward(self, action) -> float:
-        """1 on the step the merge completes courteously, else 0: the benchmark's success, not a shaping term."""
-        pay = self.courteous() and not self.paid
-        self.paid |= pay
-        return float(pay)
+        """1 on the step the merge completes courteously, -1 on a later step that makes it not courteous (a crash, braking
+        imposed beyond b_safe), else 0: the return is the benchmark's success at the episode's end, not a shaping term."""
+        now = self.courteous()
+        pay, self.paid = float(now) - float(self.paid), now
+        return pay
 
     def _is_terminated(self) -> bool:
         """A crash, or the ego past the end of its lane (merged or not: the episode's question is answered)."""
@@ -235,9 +259,10 @@ class DenseMergeEnv(AbstractEnv):
 
 
 def register() -> None:
-    """Register ENV_ID with gymnasium (once)."""
+    """Register ENV_ID with gymnasium (once), its time limit the default config's duration (decisions). gymnasium 1.x has
+    no plugin entry points: `gymnasium.make("data.highway:admm-nnmpc/DenseMerge-v0")` imports this module first."""
     if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="data.highway:DenseMergeEnv")
+        gym.register(id=ENV_ID, entry_point="data.highway:DenseMergeEnv", max_episode_steps=DenseMergeEnv.default_config()["duration"])
 
 
 register()
@@ -246,6 +271,8 @@ register()
 class HighwayWorld:
     """A DenseMergeEnv behind data.protocol.World: our frame and units, collisions by the same body-overlap test as
     ours, the ego driven through the env's own action mapping."""
+
+    hidden_decisions = False  # highway-env's drivers decide nothing in advance
 
     def __init__(self, env: DenseMergeEnv, params):
         self.env, self.params = env, params
@@ -257,6 +284,11 @@ class HighwayWorld:
     def yielding(self) -> np.ndarray:
         """Nobody yields in advance in highway-env (M,)."""
         return np.zeros(len(self.seen[-1]), bool)
+
+    @property
+    def shown(self) -> np.ndarray:
+        """Nobody shows a decision to yield in highway-env (M,)."""
+        return self.yielding
 
     @property
     def t(self) -> float:
@@ -300,6 +332,14 @@ class HighwayWorld:
     def decisions(self) -> np.ndarray:
         """No hidden decisions: highway-env's drivers never yield in advance."""
         return self.yielding
+
+    def seen_decisions(self) -> np.ndarray:
+        """Nobody has shown a decision to yield (M,)."""
+        return self.yielding
+
+    def encroachments(self) -> np.ndarray:
+        """No driver responds to encroachment in advance (M,): zeros."""
+        return np.zeros(len(self.seen[-1]))
 
     def with_decisions(self, will_yield) -> "HighwayWorld":
         """A copy; only `nobody yields` is possible here."""

@@ -10,8 +10,10 @@ class World(Protocol):
     """A traffic world one dt at a time: car 0 is the ego, cars keep their index (id) for the whole episode.
 
     Made from a seed by its scenario (`scenario.make_world(seed)`); `road` (lanes, widths, car size in m), `params`
-    (bicycle, dt in s), `t` (s), `collisions` [(t, i, j)] and `yielding` (M,) bool (which drivers brake for the ego
-    now: dataset labels, never a planner's input) are read-only attributes.
+    (bicycle, dt in s), `t` (s), `collisions` [(t, i, j)], `yielding` (M,) bool (which drivers brake for the ego
+    now), `shown` (M,) bool (whose yielding has visibly cut their acceleration so far; both dataset labels, never a
+    planner's input) and `hidden_decisions` (whether its drivers decide in advance whether to yield, so that a run can
+    be replayed with the decisions flipped) are read-only attributes.
     """
 
     def states(self) -> np.ndarray:
@@ -34,6 +36,12 @@ class World(Protocol):
 
     def decisions(self) -> np.ndarray:
         """The hidden decisions to yield (M,): for benchmarks only."""
+
+    def seen_decisions(self) -> np.ndarray:
+        """The hidden decisions as far as the drivers have shown them (M,): for the knows=seen oracle only."""
+
+    def encroachments(self) -> np.ndarray:
+        """How far the ego encroaches on each driver's lane now (M,), 0..1: where a decision can start to show."""
 
     def with_decisions(self, will_yield) -> "World":
         """A copy with the hidden decisions to yield replaced by will_yield (M,)."""

@@ -4,14 +4,17 @@ import bisect
 import copy
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+from numba.extending import register_jitable
 
 from data import bicycle
 from data.drivers import IDMDriver
 
 MEMORY = 20  # past states kept for perception, enough for reaction delays up to 4 s at dt = 0.2 s
 YIELD_LABEL = 0.1  # a driver whose response exceeds this counts as yielding in the dataset's hidden label (-)
+SHOWN_BRAKE = 0.3  # a driver has shown its decision once yielding takes this much off its acceleration (m/s^2)
 
 
 @dataclass(frozen=True)
@@ -44,13 +47,33 @@ def backfill(z, steps, dt):
     return np.stack([z[:, :2] - k * dt * z[:, 3:4] * heading for k in range(steps - 1, -1, -1)])
 
 
+class Steering(NamedTuple):
+    """A steering law's gains and bounds (steer): lateral gain k_y and heading gain k_psi (1/s), the heading set-point
+    within psi_lo..psi_hi and the steering within delta_lo..delta_hi (rad)."""
+
+    k_y: float = 0.6
+    k_psi: float = 2.0
+    psi_lo: float = -math.inf
+    psi_hi: float = math.inf
+    delta_lo: float = -0.5
+    delta_hi: float = 0.5
+
+
+@register_jitable  # numpy arrays here, scalars where a numba kernel calls it (planner.jit_interactive, jit_bicycle)
+def steer(y, psi, v, y_target, wheelbase, law):
+    """Lane-keeping steering (rad) of cars at lateral position y (m), heading psi (rad) and speed v (m/s) with
+    wheelbase l_f + l_r (m) towards lateral positions y_target (m) by the Steering `law`: a heading set-point from the
+    lateral error, then a heading loop, both with the gains as at 1 m/s below it."""
+    v = np.maximum(v, 1.0)
+    psi_d = np.minimum(np.maximum(np.arctan(law.k_y * (y_target - y) / v), law.psi_lo), law.psi_hi)
+    return np.minimum(np.maximum(wheelbase * law.k_psi * (psi_d - psi) / v, law.delta_lo), law.delta_hi)  # np.clip
+
+
 def steer_to(z, y_target, p: bicycle.BicycleParams, k_y=0.6, k_psi=2.0, delta_max=0.5):
-    """Lane-keeping steering (rad) of states z (..., 4) towards lateral positions y_target (...) (m): heading set-point
-    from the lateral error, then a heading loop; a world steers all its cars in one call."""
+    """steer for states z (..., 4) with |delta| <= delta_max (rad); a world steers all its cars in one call."""
     z = np.asarray(z, dtype=float)
-    v = np.maximum(z[..., 3], 1.0)
-    psi_d = np.arctan(k_y * (y_target - z[..., 1]) / v)
-    return np.minimum(np.maximum((p.l_f + p.l_r) * k_psi * (psi_d - z[..., 2]) / v, -delta_max), delta_max)  # np.clip
+    return steer(z[..., 1], z[..., 2], z[..., 3], y_target, p.l_f + p.l_r, Steering(k_y, k_psi, delta_lo=-delta_max,
+                                                                                      delta_hi=delta_max))
 
 
 def corners(z, road: Road):
@@ -123,7 +146,10 @@ class World:
     target_lane: np.ndarray = None
     response: np.ndarray = None  # (SLOTS,) how far each yielding driver has blended into braking for the ego, 0..1
     yielding: np.ndarray = None  # (SLOTS,) whether each driver brakes for the ego at this step (response above YIELD_LABEL)
+    shown: np.ndarray = None  # (SLOTS,) whether each driver's yielding has cut its acceleration by SHOWN_BRAKE so far
+    refused: np.ndarray = None  # (SLOTS,) whether each stubborn driver has kept an acceleration its yielding would have cut so
     seen: list = None  # past states z, newest last, from which drivers perceive the ego with their reaction delay
+    hidden_decisions = True  # each driver's decision to yield is drawn before the episode and latched
     collisions: list = field(default_factory=list)  # (time s, i, j) of every body overlap seen
     _scene: Scene = None  # the current z as a step's drivers read it, built once per step rather than per car
 
@@ -134,6 +160,8 @@ class World:
             self.target_lane = self.road.lane_of(self.z[:, 1])
         self.response = np.zeros(m)
         self.yielding = np.zeros(m, dtype=bool)
+        self.shown = np.zeros(m, dtype=bool)
+        self.refused = np.zeros(m, dtype=bool)
         self.seen = [self.z.copy()]
 
     @property
@@ -209,19 +237,23 @@ class World:
         depth = (d.d_react - abs(z[0, 1] - self.road.centre(own))) / d.d_ramp
         return float(unit(depth) * unit(dx / d.x_ramp))
 
+    def encroachments(self) -> np.ndarray:
+        """How far the ego encroaches on every driver's lane now (M,), 0..1 (`encroachment`; the ego's 0), whatever their
+        decisions: where a decision to yield can start to show, for the dataset's labels, never for a driver."""
+        ego_lane = int(self.road.lane_of(self.z[0, 1]))
+        return np.array([0.0] + [self.encroachment(j, self.z, ego_lane) for j in range(1, len(self.z))])
+
     def respond(self):
-        """Advance every yielding driver's response one step towards its perceived encroachment (first-order lag,
-        time constant t_ramp); stubborn drivers keep 0."""
+        """Advance every driver's response one step towards its perceived encroachment (first-order lag, time constant
+        t_ramp): the yielding a stubborn driver withholds too, which is what an observer sees it refuse."""
         w = np.zeros(len(self.z) - 1)
-        yielders = np.flatnonzero(self.will_yield[1:]).tolist()
-        if yielders:
-            ks = [self.perceived(i + 1) for i in yielders]
-            ego_lanes = self.road.lane_of([self.seen[k][0, 1] for k in ks]).tolist()  # in one call, not one per driver
-            for i, k, ego_lane in zip(yielders, ks, ego_lanes):
-                w[i] = self.encroachment(i + 1, self.seen[k], ego_lane)
+        ks = [self.perceived(j) for j in range(1, len(self.z))]
+        ego_lanes = self.road.lane_of([self.seen[k][0, 1] for k in ks]).tolist()  # in one call, not one per driver
+        for i, (k, ego_lane) in enumerate(zip(ks, ego_lanes)):
+            w[i] = self.encroachment(i + 1, self.seen[k], ego_lane)
         rate = np.array([min(1.0, self.params.dt / d.t_ramp) for d in self.drivers])
         self.response[1:] += rate * (w - self.response[1:])
-        self.yielding = self.response > YIELD_LABEL
+        self.yielding = (self.response > YIELD_LABEL) & self.will_yield
 
     def acceleration(self, j):
         """Driver j's acceleration (m/s^2): IDM to its leader, blended by its response towards IDM behind the ego
@@ -234,7 +266,10 @@ class World:
         if self.response[j] == 0.0:
             return a
         ahead = unit((s.x[0] - s.x[j]) / d.x_ramp)  # nothing to yield to once the ego is behind
-        return a + self.response[j] * ahead * (min(a, max(self.idm_to(j, 0), -d.b_yield)) - a)
+        yielded = a + self.response[j] * ahead * (min(a, max(self.idm_to(j, 0), -d.b_yield)) - a)
+        if yielded < a - SHOWN_BRAKE:  # an observer can tell the decision, either way (latched; the oracles read it)
+            (self.shown if self.will_yield[j] else self.refused)[j] = True
+        return yielded if self.will_yield[j] else a
 
     def mobil(self, j, a_now):
         """The lane MOBIL picks for driver j: the lane to its left (away from the ego's lane) or its own.
@@ -270,14 +305,27 @@ class World:
         Only what a step or a caller writes is copied: road, params and drivers are frozen, and a remembered state is
         never written (a step appends a new one); a deepcopy took a millisecond, the oracle makes one per plan."""
         w = copy.copy(self)
-        w.z, w.target_lane, w.response, w.yielding, w.will_yield = (
-            a.copy() for a in (self.z, self.target_lane, self.response, self.yielding, self.will_yield))
+        w.z, w.target_lane, w.response, w.yielding, w.shown, w.refused, w.will_yield = (
+            a.copy() for a in (self.z, self.target_lane, self.response, self.yielding, self.shown, self.refused,
+                               self.will_yield))
         w.drivers, w.seen, w.collisions = list(self.drivers), list(self.seen), list(self.collisions)
         return w
 
     def decisions(self):
         """The hidden, latched decisions to yield (M,) (the ego's always False): for benchmarks, never for a planner."""
         return self.will_yield.copy()
+
+    def seen_decisions(self):
+        """The hidden decisions as far as shown (M,): True for a driver whose yielding has cut its acceleration by
+        SHOWN_BRAKE at some step, False for every other (undecided or stubborn): the knows=seen oracle's, never a
+        planner's."""
+        return self.will_yield & self.shown
+
+    def decided(self):
+        """Whose decision an observer can tell now (M,): a yielder once its yielding has cut its acceleration by
+        SHOWN_BRAKE (shown), a stubborn driver once it has kept an acceleration its yielding would have cut as much
+        (refused): the knows=prior oracle's, never a planner's."""
+        return self.shown | self.refused
 
     def with_decisions(self, will_yield) -> "World":
         """A copy whose hidden decisions to yield are `will_yield` (M,); the ego's stays False."""

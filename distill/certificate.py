@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.jobs import UserError, recover
+from core.jobs import UserError, model_file, recover, sha256
 from core.rollout import SLOTS, T_OBS
 from data import bicycle
 
@@ -374,7 +374,7 @@ def certified_rho(path, scenario):
     if not path.is_file():
         raise UserError(f"mpc.admm.rho=certified: no certificate at {path}; run `distill model=student` first")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(model_file(path).read_text())
     except (OSError, UnicodeDecodeError, ValueError) as e:
         raise UserError(f"mpc.admm.rho=certified: {path} is not a readable certificate ({type(e).__name__}: {e}); "
                         "rerun `distill model=student`") from None
@@ -389,4 +389,21 @@ def certified_rho(path, scenario):
     if not (math.isfinite(rho) and rho > 0):
         raise UserError(f"mpc.admm.rho=certified: the certified rho for {scenario} in {path} is {bound}, not a usable penalty "
                         "(a number > 0)")
+    check_certifies(path, doc)
     return rho
+
+
+def check_certifies(path: Path, doc: dict) -> None:
+    """One UserError unless the student files a certificate records by sha256 (`certifies`: {file name: hex digest}) lie
+    beside it with those bytes: a certificate holds only for the weights it was computed from."""
+    files = doc.get("certifies")
+    if not isinstance(files, dict) or not files:
+        raise UserError(f"mpc.admm.rho=certified: {path} does not record the student it certifies (its sha256); rerun "
+                        "`distill model=student`")
+    for name, digest in files.items():
+        beside = path.parent / name
+        if not beside.is_file():
+            raise UserError(f"mpc.admm.rho=certified: {path} certifies {beside}, which is not there; rerun `distill model=student`")
+        if sha256(beside) != digest:
+            raise UserError(f"mpc.admm.rho=certified: {path} certifies another {name} (sha256 {str(digest)[:8]}) than "
+                            f"{beside} ({sha256(beside)[:8]}): a student trained since; rerun `distill model=student`")

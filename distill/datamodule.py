@@ -16,6 +16,7 @@ class WindowData(L.LightningDataModule):
     and fills `groups` (a TensorDataset of branch groups) gets that many groups beside every training batch."""
 
     group_batch = 0  # branch groups per training batch
+    hypotheses = False  # True: the runs under flipped decisions too, for a predictor given the hypotheses
 
     def __init__(self, dataset_dir, batch_size, fraction):
         """dataset_dir: a make-dataset folder; batch_size: training batch (validation uses 4x); fraction: the share of
@@ -29,6 +30,7 @@ class WindowData(L.LightningDataModule):
         for split in ("train", "val"):
             if split not in self.splits:
                 arrays = dataset.load(self.dataset_dir, split)
+                arrays = dataset.hidden_labels(arrays, f"{self.dataset_dir}/{split}.npz") if self.hypotheses else dataset.factual(arrays)
                 self.splits[split] = self.tensors(first_episodes(arrays, self.fraction) if split == "train" else arrays)
 
     def tensors(self, arrays):
@@ -96,6 +98,29 @@ class SequenceData(WindowData):
             self.groups = TensorDataset(*(torch.from_numpy(a[np.maximum(idx, 0)]) for a in arrays32),
                                         torch.from_numpy(idx >= 0))
         return TensorDataset(*(torch.from_numpy(a) for a in arrays32))
+
+
+class HypothesisSequenceData(SequenceData):
+    """SequenceData's windows and futures of every run, flipped branches included, with each window's hypotheses (its
+    run's latched decisions per slot, float (SLOTS,)) and each slot's weight in the belief's loss: 0 on a flipped run
+    (its undecided cars hold the opposite of the world's population), encroached_weight on a car the ego has encroached
+    on (where the decision can show; the rest teach the prior), 1 otherwise. Weighting by what a window shows keeps the
+    belief calibrated within each kind."""
+
+    hypotheses = True
+
+    def __init__(self, dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, whole_weight,
+                 fraction, encroached_weight):
+        """As SequenceData's; encroached_weight (-): the belief loss's weight on cars the ego has encroached on."""
+        super().__init__(dataset_dir, batch_size, horizon, contrast_groups, hard_braking, hard_weight, whole_weight, fraction)
+        self.encroached_weight = float(encroached_weight)
+
+    def tensors(self, arrays):
+        """SequenceData's tensors, then the hypotheses and the belief weights."""
+        base = super().tensors(arrays)
+        w = np.where(arrays["since_encroach"] >= 0, self.encroached_weight, 1.0) * ~arrays["flipped"][:, None]
+        return TensorDataset(*base.tensors, torch.from_numpy(arrays["will_yield"].astype(np.float32)),
+                             torch.from_numpy(w.astype(np.float32)))
 
 
 def groups(a, needed_by=None) -> np.ndarray:
@@ -186,9 +211,28 @@ def teacher_rollouts(teacher, arrays, horizon, where, chunk=1024):
             idx >= 0)
 
 
-def label(teacher, X, rng, projections, chunk=1024):
-    """Teacher next (n, SLOTS, 2), cotangents v (n, k, SLOTS, 2) (ego rows 0: the plan fills that slot), v^T J (n, k, T_obs*SLOTS*2)."""
+class HypothesisDistillData(DistillData):
+    """DistillData for a hypothesis student from a hypothesis teacher: every window under hypotheses drawn uniformly
+    (each other slot yields with probability 1/2), the teacher's next and v^T J under them, and the teacher's belief."""
+
+    hypotheses = True
+
+    def tensors(self, arrays):
+        """Windows and planner-like copies, their hypotheses, the teacher's labels under them and its belief, float32."""
+        X = np.concatenate([arrays["X"]] + [planner_like(arrays["X"], self.rng, **self.perturb)
+                                            for _ in range(self.perturbed_copies)])
+        hyp = (self.rng.random(X.shape[:1] + X.shape[2:3]) < 0.5).astype(float)
+        hyp[:, 0] = 0.0
+        belief = np.concatenate([self.teacher.belief(X[i:i + 1024]) for i in range(0, len(X), 1024)])
+        return TensorDataset(*(torch.tensor(a, dtype=torch.float32)
+                               for a in (X, *label(self.teacher, X, self.rng, self.projections, hyp), hyp, belief)))
+
+
+def label(teacher, X, rng, projections, hyp=None, chunk=1024):
+    """Teacher next (n, SLOTS, 2), cotangents v (n, k, SLOTS, 2) (ego rows 0: the plan fills that slot), v^T J (n, k,
+    T_obs*SLOTS*2); a hypothesis teacher under the hypotheses hyp (n, SLOTS)."""
     v = rng.standard_normal((len(X), projections) + X.shape[2:])
     v[:, :, 0] = 0.0
-    parts = [teacher.phi_vjp(X[i : i + chunk], v[i : i + chunk]) for i in range(0, len(X), chunk)]
+    given = (lambda i: teacher) if hyp is None else (lambda i: teacher.given(hyp[i : i + chunk]))
+    parts = [given(i).phi_vjp(X[i : i + chunk], v[i : i + chunk]) for i in range(0, len(X), chunk)]
     return np.concatenate([p[0] for p in parts]), v, np.concatenate([p[1] for p in parts])

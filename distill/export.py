@@ -6,17 +6,32 @@ import numpy as np
 from core.jobs import UserError, atomic_file
 
 
-def export_onnx(module, path: Path, t_obs=8, m=5):
-    """Write the torch `module` (window (B, T_obs, SLOTS, 2) -> next (B, SLOTS, 2)) to `path` atomically, batch size dynamic."""
+def export_onnx(module, path: Path, t_obs: int, m: int):
+    """Write the torch `module` (window (B, T_obs, SLOTS, 2) -> next (B, SLOTS, 2)) traced at windows of t_obs steps and
+    m = SLOTS cars to `path` atomically, batch size dynamic; a hypothesis network (one with a belief) as (window,
+    hypothesis (B, SLOTS)) -> (next, belief (B, SLOTS))."""
     import torch  # here, not at the top: the planner reads ONNX files through this module without torch
 
-    example = torch.zeros(2, t_obs, m, 2)
+    class Answers(torch.nn.Module):
+        """A hypothesis network's next positions under the hypotheses and its belief, as one graph."""
+
+        def __init__(self, net):
+            super().__init__()
+            self.net = net
+
+        def forward(self, window, hypothesis):
+            return self.net(window, hypothesis), self.net.belief(window)
+
+    hyp = hasattr(module, "belief")
+    example = (torch.zeros(2, t_obs, m, 2),) + ((torch.zeros(2, m),) if hyp else ())
+    inputs, outputs = (["window", "hypothesis"], ["next", "belief"]) if hyp else (["window"], ["next"])
 
     def write(tmp):
         """Export to the temporary path."""
         # the legacy TorchScript exporter: the dynamo one needs onnxscript, which is not a dependency
-        torch.onnx.export(module.eval(), (example,), str(tmp), input_names=["window"], output_names=["next"],
-                          dynamic_axes={"window": {0: "batch"}, "next": {0: "batch"}}, opset_version=17, dynamo=False)
+        torch.onnx.export((Answers(module) if hyp else module).eval(), example, str(tmp), input_names=inputs,
+                          output_names=outputs, dynamic_axes={k: {0: "batch"} for k in inputs + outputs}, opset_version=17,
+                          dynamo=False)
 
     atomic_file(Path(path), write)
 
@@ -49,6 +64,12 @@ class OnnxPredictor:
         """Next xy (B, SLOTS, 2) in metres, float64."""
         x = np.ascontiguousarray(window, dtype=np.float32)
         return self.session.run(None, {"window": x})[0].astype(float)
+
+    def answers(self, window, hyp):
+        """A hypothesis model's next xy (B, SLOTS, 2) (m) under hypotheses hyp (B, SLOTS) and its belief (B, SLOTS),
+        float64."""
+        feed = {"window": np.ascontiguousarray(window, dtype=np.float32), "hypothesis": np.ascontiguousarray(hyp, dtype=np.float32)}
+        return tuple(a.astype(float) for a in self.session.run(None, feed))
 
 
 def load_onnx(name: str, models_dir="models") -> OnnxPredictor:

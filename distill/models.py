@@ -2,6 +2,8 @@
 
 phi maps windows (B, T_obs, SLOTS, 2) of xy in metres to next xy (B, SLOTS, 2); phi_jac also returns the exact local
 Jacobian (B, SLOTS*2, T_obs*SLOTS*2) of the flattened next w.r.t. the flattened window (C order).
+A hypothesis predictor (teacher_hyp, student_hyp) gives that interface under fixed hypotheses, .given(hyp), and a
+belief per car, .belief(window).
 """
 from pathlib import Path
 
@@ -10,12 +12,13 @@ import torch
 from hydra.utils import instantiate
 from torch.func import vjp
 
-from core.jobs import MissingModel, UserError, recover
+from core.jobs import MissingModel, UserError, model_file, recover
+from distill import student
 from distill.predictors import ConstantVelocity
-from distill.student import phi_jac64
 
-NAMES = ("teacher", "student", "cv")
-NETS = {"teacher": "distill.teacher.SocialTeacher", "student": "distill.student.GeluStudent"}  # the network class of each
+NAMES = ("teacher", "student", "teacher_hyp", "student_hyp", "cv")
+NETS = {"teacher": "distill.teacher.SocialTeacher", "student": "distill.student.GeluStudent",  # the network class of each
+        "teacher_hyp": "distill.teacher.HypothesisTeacher", "student_hyp": "distill.student.HypothesisStudent"}
 
 
 def window_of(module) -> tuple:
@@ -59,25 +62,69 @@ class TorchPredictor:
 
 
 class StudentPredictor(TorchPredictor):
-    """The GELU student: phi and its exact Jacobian in float64 numpy from the weights (fast at batch 1, as a planner calls it)."""
+    """The GELU student: phi and its exact Jacobian by its compiled float64 forward pass (distill.student.phi_jac: fast
+    at batch 1, as a planner calls it)."""
 
     def __init__(self, module):
         """module: a GeluStudent; its weights are copied to float64 once."""
         super().__init__("student", module)
         self.weights = module.weights64()
         self.s = module.s.double().numpy()
+        self.kernel = student.kernel_args(self.weights, self.s)  # (Ws, bs, s): the compiled kernels' arguments
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2) in metres, float64."""
-        return phi_jac64(self.weights, self.s, window, jac=False)
+        return student.phis(*self.kernel, np.ascontiguousarray(window, float))
 
     def phi_jac(self, window):
         """Next xy (B, SLOTS, 2) and the exact J (B, SLOTS*2, T_obs*SLOTS*2), float64."""
-        return phi_jac64(self.weights, self.s, window)
+        return student.phi_jacs(*self.kernel, np.ascontiguousarray(window, float))
 
     def jac_cols(self, window, cols):
-        """The Jacobian's columns `cols` only (B, SLOTS*2, len(cols)), float64: cheap when only the ego's inputs matter."""
-        return phi_jac64(self.weights, self.s, window, cols=cols)[1]
+        """The Jacobian's columns `cols` only (B, SLOTS*2, len(cols)), float64."""
+        return self.phi_jac(window)[1][:, :, cols]
+
+
+class Given(torch.nn.Module):
+    """A hypothesis network as a plain one: window (B, T_obs, SLOTS, 2) -> next (B, SLOTS, 2) under fixed hypotheses."""
+
+    def __init__(self, net, hyp):
+        """net: a hypothesis network; hyp (SLOTS,) for every window, or (B, SLOTS) one per window, 1: the car yields."""
+        super().__init__()
+        self.net = net
+        self.register_buffer("hyp", torch.as_tensor(np.asarray(hyp), dtype=next(net.parameters()).dtype))
+
+    def forward(self, window):
+        """Next xy (B, SLOTS, 2) in metres under the hypotheses."""
+        return self.net(window, self.hyp.expand(window.shape[0], -1) if self.hyp.dim() == 1 else self.hyp)
+
+
+class HypothesisPredictor:
+    """A hypothesis network as a predictor: .given(hyp) is a predictor (phi, phi_vjp, phi_jac) under fixed hypotheses
+    hyp (SLOTS,) or (B, SLOTS) (1: the car yields to an encroaching ego, 0: it does not; the ego's ignored), the fixed
+    input of a rollout; .belief(window) is p(yields | window) (B, SLOTS), the ego's 0."""
+
+    fitted = True
+
+    def __init__(self, name, module):
+        """name for reports; module: a HypothesisTeacher or HypothesisStudent."""
+        self.name, self.module = name, module.eval()
+        self.dtype = next(module.parameters()).dtype
+        self.window = window_of(module)
+
+    def given(self, hyp):
+        """The predictor under hypotheses hyp: for one hypothesis (SLOTS,) the student is a GeluStudent
+        (HypothesisStudent.fixed) behind its own float64 path; else torch autodiff through the network."""
+        hyp = np.asarray(hyp, dtype=float)
+        p = StudentPredictor(self.module.fixed(hyp)) if hasattr(self.module, "fixed") and hyp.ndim == 1 else \
+            TorchPredictor(self.name, Given(self.module, hyp))
+        p.name, p.window = self.name, self.window
+        return p
+
+    def belief(self, window):
+        """p(yields | window) (B, SLOTS) per car, float64, the ego's 0."""
+        with torch.no_grad():
+            return self.module.belief(torch.tensor(np.asarray(window), dtype=self.dtype)).double().numpy()
 
 
 def read_checkpoint(path: Path, name: str | None = None) -> torch.nn.Module:
@@ -115,7 +162,8 @@ def check_finite(outputs, path, advice: str) -> None:
 
 
 def load(name: str, models_dir):
-    """The predictor `name` (teacher | student | cv) from models_dir/<name>.ckpt, checked finite on a probe window."""
+    """The predictor `name` (teacher | student | teacher_hyp | student_hyp | cv) from models_dir/<name>.ckpt, checked
+    finite on a probe window (a hypothesis predictor under every car yielding and its belief)."""
     if name == "cv":
         return ConstantVelocity()
     if name not in NAMES:
@@ -124,8 +172,19 @@ def load(name: str, models_dir):
     path = Path(models_dir) / f"{name}.ckpt"
     if not path.exists():
         raise MissingModel(f"{path} not found: run `distill model={name}`")
-    net = read_checkpoint(path, name)
-    predictor = StudentPredictor(net) if name == "student" else TorchPredictor(name, net)
+    predictor = wrap(name, read_checkpoint(model_file(path), name))
     T_obs, M = predictor.window
-    check_finite(predictor.phi_jac(probe_window(T_obs or 8, M or 5)), path, f"re-run `distill model={name}`")
+    probe = probe_window(T_obs or 8, M or 5)
+    if isinstance(predictor, HypothesisPredictor):
+        check_finite((*predictor.given(np.ones(probe.shape[2])).phi_jac(probe), predictor.belief(probe)), path,
+                     f"re-run `distill model={name}`")
+    else:
+        check_finite(predictor.phi_jac(probe), path, f"re-run `distill model={name}`")
     return predictor
+
+
+def wrap(name: str, net):
+    """The predictor of model `name` around its network: the student's numpy path, a hypothesis predictor, or torch."""
+    if name.endswith("_hyp"):
+        return HypothesisPredictor(name, net)
+    return StudentPredictor(net) if name == "student" else TorchPredictor(name, net)

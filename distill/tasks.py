@@ -65,10 +65,10 @@ class TeacherTask(_Task):
             loss = self._step(batch["windows"], stage) + self.hparams.contrast_weight * contrast
             self._log(stage, contrast=contrast)
             return loss
-        X, ego, others, mask = batch
+        X, ego, others, mask = batch[:4]
         horizon = ego.shape[1] if self.hparams.rollout_weight else 1
         mask = mask[:, :horizon, None, None]
-        err = (rollout(self.net, X, ego[:, :horizon])[:, :, 1:] - others[:, :horizon]) * mask  # (B, H, N, 2) m
+        err = (rollout(self.phi(batch), X, ego[:, :horizon])[:, :, 1:] - others[:, :horizon]) * mask  # (B, H, N, 2) m
         loss = torch.nn.functional.huber_loss(err[:, 0] / self.hparams.scale_m, torch.zeros_like(err[:, 0]))
         dist = err.norm(dim=-1).mean(-1)  # (B, H) m
         values = {"ade_m": dist[:, 0].mean()}
@@ -82,8 +82,17 @@ class TeacherTask(_Task):
                 values["brake_err"] = (pred - true).abs().mean()
                 loss = loss + self.hparams.brake_weight * torch.nn.functional.huber_loss(
                     pred / self.hparams.brake_scale, true / self.hparams.brake_scale)
+        loss = loss + self.extra_loss(batch, values)
         self._log(stage, loss=loss, **values)
         return loss
+
+    def phi(self, batch):
+        """The one-step predictor of the batch's rollouts: the network."""
+        return self.net
+
+    def extra_loss(self, batch, values):
+        """A subclass's further loss terms on the batch, its logged parts added to `values`: none."""
+        return 0.0
 
     def contrast(self, X, ego, others, mask, member):
         """branch_contrast of the rollouts of each branch group against the recorded futures, in rollout_scale_m units.
@@ -142,14 +151,19 @@ class StudentTask(_Task):
 
     def spectral_penalty(self):
         """Sum of log spectral norms of the layers (first with P folded): the log of the certificate's product."""
-        norms = [torch.linalg.matrix_norm(layer.weight @ self.net.P if k == 0 else layer.weight, ord=2)
+        norms = [torch.linalg.matrix_norm(self.first_weight() if k == 0 else layer.weight, ord=2)
                  for k, layer in enumerate(self.net.layers)]
         return torch.stack(norms).log().sum()
+
+    def first_weight(self):
+        """The first layer's weight on the window in metres (P folded in; a hypothesis student's further columns, its
+        hypothesis inputs, only shift the bias)."""
+        return self.net.layers[0].weight[:, :self.net.P.shape[0]] @ self.net.P
 
     def certified_L(self):
         """distill.certificate.constants' L (m^-1), differentiable: the same layer recursion on torch weights."""
         layers = self.net.layers
-        hidden = [(layers[0].weight @ self.net.P)[:, ego_columns()], *(layer.weight for layer in layers[1:-1])]
+        hidden = [self.first_weight()[:, ego_columns()], *(layer.weight for layer in layers[1:-1])]
         lip, hess = layer_recursion(hidden, lambda W: torch.linalg.matrix_norm(W, ord=2), lambda W: W.norm(dim=1))
         return head_L(self.net.s, layers[-1].weight.norm(dim=1), lip, hess).max()
 
@@ -166,9 +180,9 @@ class StudentTask(_Task):
             self._log(stage, rollout_loss=rollout_loss, contrast=contrast)
             return (self._step(batch["windows"], stage) + self.hparams.rollout_weight * rollout_loss
                     + self.hparams.contrast_weight * contrast)
-        X, y_t, v, vJ_t = batch
+        X, y_t, v, vJ_t = batch[:4]
         X = X.requires_grad_()
-        y_s = self.net(X)
+        y_s = self.phi(batch)(X)
         vJ_s = torch.stack([torch.autograd.grad(y_s, X, v[:, k], create_graph=True)[0].flatten(1)
                             for k in range(v.shape[1])], dim=1)
         err = (y_s - y_t)[:, 1:]
@@ -179,6 +193,9 @@ class StudentTask(_Task):
             loss = loss + self.hparams.spectral_weight * self.spectral_penalty()
         if self.hparams.cert_weight:
             loss = loss + self.hparams.cert_weight * self.certified_L().log()
+        parts = {}
+        loss = loss + self.extra_loss(batch, parts)
+        self._log(stage, **parts)
         self._log(stage, loss=loss, out_loss=out_loss, jac_loss=jac_loss, ade_m=err.norm(dim=-1).mean())
         return loss
 
@@ -186,3 +203,67 @@ class StudentTask(_Task):
         """Validation loss; the Jacobian term needs autograd even here."""
         with torch.enable_grad():
             self._step(batch, "val")
+
+    def phi(self, batch):
+        """The one-step predictor the batch's outputs and Jacobians are matched on: the network."""
+        return self.net
+
+    def extra_loss(self, batch, values):
+        """A subclass's further loss terms on the batch, its logged parts added to `values`: none."""
+        return 0.0
+
+
+def belief_bce(net, X, target, weight):
+    """Weighted mean binary cross-entropy (-) of the network's belief about slots 1..N against target probabilities
+    (B, SLOTS) (a latched label, or a teacher's belief), weights (B, SLOTS)."""
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(net.belief_logit(X)[:, 1:], target[:, 1:], reduction="none")
+    w = weight[:, 1:].to(bce.dtype)
+    return (bce * w).sum() / w.sum().clamp(min=1e-9)
+
+
+class HypothesisTeacherTask(TeacherTask):
+    """TeacherTask on batches (window, ego future, others' future, mask, hypotheses (B, SLOTS), belief weights (B, SLOTS)):
+    every rollout under its run's latched decisions (on a flipped branch, its flipped ones), plus belief_weight x the
+    belief's binary cross-entropy against those decisions (datamodule.HypothesisSequenceData's weights: the factual runs
+    only, as a flipped branch would teach the belief its flipped rate)."""
+
+    def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, rollout_weight: float,
+                 rollout_scale_m: float, contrast_weight: float, brake_weight: float, brake_scale: float, dt: float,
+                 belief_weight: float):
+        """As TeacherTask's; belief_weight (-): the belief term's weight."""
+        super().__init__(net, lr, weight_decay, scale_m, rollout_weight, rollout_scale_m, contrast_weight, brake_weight,
+                         brake_scale, dt)
+
+    def phi(self, batch):
+        """The network under the batch's hypotheses."""
+        hyp = batch[4]
+        return lambda window: self.net(window, hyp)
+
+    def extra_loss(self, batch, values):
+        """belief_weight x the belief's weighted cross-entropy."""
+        values["belief_bce"] = belief_bce(self.net, batch[0], batch[4], batch[5])
+        return self.hparams.belief_weight * values["belief_bce"]
+
+
+class HypothesisStudentTask(StudentTask):
+    """StudentTask on batches (window, teacher next, v, teacher v^T J, hypotheses (B, SLOTS), teacher belief (B, SLOTS)):
+    outputs and Jacobians matched under each window's hypotheses, plus belief_weight x the cross-entropy of the
+    student's belief against the teacher's."""
+
+    def __init__(self, net: dict, lr: float, weight_decay: float, scale_m: float, jac_weight: float,
+                 ego_jac_weight: float, spectral_weight: float, cert_weight: float, rollout_weight: float,
+                 contrast_weight: float, rollout_scale_m: float, belief_weight: float):
+        """As StudentTask's; belief_weight (-): the belief term's weight."""
+        super().__init__(net, lr, weight_decay, scale_m, jac_weight, ego_jac_weight, spectral_weight, cert_weight,
+                         rollout_weight, contrast_weight, rollout_scale_m)
+
+    def phi(self, batch):
+        """The network under the batch's hypotheses."""
+        hyp = batch[4]
+        return lambda window: self.net(window, hyp)
+
+    def extra_loss(self, batch, values):
+        """belief_weight x the belief's cross-entropy against the teacher's."""
+        X = batch[0].detach()
+        values["belief_bce"] = belief_bce(self.net, X, batch[5], torch.ones_like(batch[5]))
+        return self.hparams.belief_weight * values["belief_bce"]

@@ -55,6 +55,12 @@ class SocialTeacher(nn.Module):
 
     def forward(self, window):
         """Next xy (B, M, 2) in metres from window (B, T_obs, M, 2) in metres."""
+        h, pooled, vel = self.encode(window)
+        return self.decode(window, vel, torch.cat([h, pooled], -1))
+
+    def encode(self, window):
+        """Each car's encoding (B, M, hidden), its pooled view of the others (B, M, pool), the window's per-step
+        displacements (B, T_obs - 1, M, 2) (m per step)."""
         b, t, m, _ = window.shape
         vel = window[:, 1:] - window[:, :-1]  # m per step
         acc = vel[:, 1:] - vel[:, :-1]
@@ -66,9 +72,40 @@ class SocialTeacher(nn.Module):
         d_pos = (last[:, None, :] - last[:, :, None]) / self.pos_scale  # (B, i, j, 2): j seen from i
         d_vel = (v_last[:, None, :] - v_last[:, :, None]) / self.vel_scale
         h_j = h[:, None].expand(b, m, m, h.shape[-1])
-        pooled = self.pool(torch.cat([d_pos, d_vel, h_j], -1)).max(dim=2).values
+        return h, self.pool(torch.cat([d_pos, d_vel, h_j], -1)).max(dim=2).values, vel
 
-        acc_next = self.acc_scale * self.decoder(torch.cat([h, pooled], -1))
+    def decode(self, window, vel, features):
+        """Next xy (B, M, 2) (m): the decoder's acceleration from each car's features (B, M, d) on its constant velocity."""
+        m = window.shape[2]
+        acc_next = self.acc_scale * self.decoder(features)
         others = torch.ones(m, 1, dtype=window.dtype, device=window.device)
         others[0] = 0.0
         return window[:, -1] + vel[:, -1] + others * acc_next
+
+
+class HypothesisTeacher(SocialTeacher):
+    """The social teacher under a hypothesis per car, hyp (B, M) with 1: it yields to an encroaching ego, 0: it does not
+    (the ego's ignored), fed to the decoder beside its features; a belief head gives p(yields | window) per car."""
+
+    def __init__(self, hidden, pool, decoder, belief, pos_scale, vel_scale, acc_scale):
+        """As SocialTeacher's, and the belief head's hidden widths."""
+        super().__init__(hidden, pool, decoder, pos_scale, vel_scale, acc_scale)
+        self.decoder = relu_mlp([hidden + pool + 1, *decoder, 2])
+        nn.init.zeros_(self.decoder[-1].weight)  # start exactly at constant velocity
+        nn.init.zeros_(self.decoder[-1].bias)
+        self.belief_head = relu_mlp([hidden + pool, *belief, 1])
+
+    def forward(self, window, hyp):
+        """Next xy (B, M, 2) in metres from window (B, T_obs, M, 2) in metres under hypotheses hyp (B, M) in {0, 1}."""
+        h, pooled, vel = self.encode(window)
+        return self.decode(window, vel, torch.cat([h, pooled, hyp[..., None].to(window.dtype)], -1))
+
+    def belief_logit(self, window):
+        """log-odds (B, M) that each car yields to the ego, given the window (the ego's meaningless)."""
+        h, pooled, _ = self.encode(window)
+        return self.belief_head(torch.cat([h, pooled], -1))[..., 0]
+
+    def belief(self, window):
+        """p(yields | window) (B, M) per car, the ego's 0."""
+        p = torch.sigmoid(self.belief_logit(window))
+        return torch.cat([torch.zeros_like(p[:, :1]), p[:, 1:]], 1)

@@ -9,14 +9,16 @@ from pathlib import Path
 
 import lightning as L
 import mlflow
+import mlflow.onnx
 import numpy as np
+import onnx as onnx_model
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, job_config, mlflow_run, quiet, staged, tracking_uri, writable
+from core.jobs import CONF_DIR, UserError, job_config, made_models, mlflow_run, quiet, sha256, staged, tracking_uri, writable
 from data import dataset
 from distill import certificate, metrics, models
 from distill.export import export_onnx, load_onnx
@@ -130,7 +132,34 @@ SCENARIO_METRICS = ("theta_x", "theta_y", "L", "L_1", "L_g", "L_J", "M", "sigma_
 
 # each model's branch-group setting and the loss weights that need it
 BRANCH_TERMS = {"teacher": ("contrast_groups", ("contrast_weight",)),
-                "student": ("rollout_groups", ("rollout_weight", "contrast_weight"))}
+                "student": ("rollout_groups", ("rollout_weight", "contrast_weight")),
+                "teacher_hyp": ("contrast_groups", ()), "student_hyp": ("rollout_groups", ())}
+
+
+def hypotheses(n_others: int) -> np.ndarray:
+    """Every hypothesis (2^N, N + 1) over N other cars, 1: the car yields (the ego's column 0)."""
+    combos = (np.arange(2**n_others)[:, None] >> np.arange(n_others)) & 1
+    return np.concatenate([np.zeros((len(combos), 1)), combos], 1).astype(float)
+
+
+def certify_hypotheses(cfg_cert, predictor, windows, rng):
+    """certify under every fixed hypothesis, the samples shared out among them: the largest constants and sampled values
+    over all of them (each hypothesis checked against its own certificate), and per hypothesis (keyed 0/1 per car)."""
+    hyps = hypotheses(windows.shape[2] - 1)
+    share = OmegaConf.create({**OmegaConf.to_container(cfg_cert, resolve=True), "samples": max(6, cfg_cert.samples // len(hyps))})
+    per = {}
+    for h in hyps:
+        pick = windows[rng.choice(len(windows), size=min(len(windows), share.samples // 3), replace=False)]
+        per["".join(str(int(v)) for v in h[1:])] = certify(share, predictor.given(h), pick, rng)
+    worst = lambda docs, k: max(d[k] for d in docs)  # noqa: E731
+    certs, emps = [c for c, _ in per.values()], [e for _, e in per.values()]
+    cert = {**certs[0], **{k: worst(certs, k) for k, v in certs[0].items() if isinstance(v, float)}}
+    cert["scenarios"] = {n: {**sc, **{k: max(c["scenarios"][n][k] for c in certs) for k, v in sc.items()
+                                     if isinstance(v, float)}} for n, sc in certs[0]["scenarios"].items()}
+    emp = {k: (sum(e[k] for e in emps) if k.startswith("emp_samples") else worst(emps, k)) for k in emps[0]}
+    cert["hypotheses"] = {k: {"constants_m": {n: v for n, v in c.items() if n != "scenarios"}, "sampled": e,
+                              "ratios": certificate.ratios(c, e)} for k, (c, e) in per.items()}
+    return cert, emp
 
 
 def initial_net(cfg: DictConfig) -> torch.nn.Module:
@@ -156,6 +185,8 @@ def check_inputs(cfg: DictConfig):
     init_from (None without))."""
     validate.check(cfg, "distill")
     groups, weights = BRANCH_TERMS[cfg.model.name]
+    if cfg.model.name.endswith("_hyp") and cfg.model.data.get(groups, 0):
+        raise UserError(f"model.data.{groups}={cfg.model.data[groups]}: model={cfg.model.name} takes no branch groups (set 0)")
     for weight in weights:
         if cfg.model.task.get(weight, 0) and not cfg.model.data.get(groups, 0):
             raise UserError(f"model.task.{weight}={cfg.model.task[weight]} needs model.data.{groups} > 0 (branch groups "
@@ -167,10 +198,16 @@ def check_inputs(cfg: DictConfig):
             raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint file")
         models.read_checkpoint(Path(cfg.ckpt_path), cfg.model.name)
     start = None if cfg.init_from is None else initial_net(cfg)
+    if cfg.model.name.endswith("_hyp"):
+        for folder, split in dict.fromkeys(((cfg.dataset_dir, "train"), (cfg.eval_dir, cfg.eval_split))):
+            dataset.hidden_labels(dataset.load(folder, split), Path(folder) / f"{split}.npz")
     teacher = None
-    if cfg.model.name == "student":
+    if cfg.model.name in ("student", "student_hyp"):
         scenario_configs(cfg.model.certificate.scenarios)  # an unknown name fails here, not after training
         teacher = models.load(cfg.model.teacher, cfg.models_dir)
+        if cfg.model.name.endswith("_hyp") != hasattr(teacher, "given"):
+            raise UserError(f"model.teacher={cfg.model.teacher}: model={cfg.model.name} distils from "
+                            f"{'a hypothesis teacher (teacher_hyp)' if cfg.model.name.endswith('_hyp') else 'a teacher without hypotheses'}")
     writable(cfg.models_dir, "models_dir")  # last: a rejected command creates no folder
     return teacher, start
 
@@ -183,30 +220,37 @@ def run(cfg: DictConfig):
     torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // cfg.trainer.devices))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     rank0 = int(os.environ.get("LOCAL_RANK", 0)) == 0  # Lightning's DDP launcher re-runs this job in child processes
-    with (mlflow_run("distill", cfg, run_name=name, model=name) if rank0 else nullcontext()) as run_:
+    run_name = f"{name}-{cfg.dataset.name}{'-from-' + Path(cfg.init_from).stem if cfg.init_from else ''}-seed{cfg.seed}"
+    with (mlflow_run("distill", cfg, run_name=run_name, model=name) if rank0 else nullcontext()) as run_:
         t0 = time.perf_counter()
         trainer = fit(cfg, run_.info.run_id if rank0 else None, teacher, start)
         if trainer.global_rank != 0:
             return None
         results = {"train_s": time.perf_counter() - t0, "epochs": trainer.current_epoch}
         best = Path(trainer.checkpoint_callback.best_model_path or trainer.checkpoint_callback.last_model_path)
-        predictor = models.StudentPredictor(models.read_checkpoint(best)) if name == "student" else \
-            models.TorchPredictor(name, models.read_checkpoint(best))
+        predictor = models.wrap(name, models.read_checkpoint(best))
         test = dataset.load(cfg.eval_dir, cfg.eval_split)
         t_p = cfg.paper.T_p  # rollout horizon of the ade_rollout / fde_rollout figures
         table = {name: metrics.ade(predictor, test, t_p), "cv": metrics.ade(models.load("cv", cfg.models_dir), test, t_p)}
         results.update(table[name])
-        results.update({f"cv_{k}": v for k, v in table["cv"].items()})
+        results.update({f"{k}_cv": v for k, v in table["cv"].items()})  # a baseline's scores: its name last, as surrogate's
         results["params"] = sum(p.numel() for p in predictor.module.parameters())
-        results["forward_us"] = metrics.forward_us(predictor, test["X"])
+        hyp = name.endswith("_hyp")
+        cert_file = "certificate.json" if name == "student" else f"certificate_{name}.json"
+        plain = predictor.given(np.zeros(test["X"].shape[2])) if hyp else predictor  # nobody yields: speed, Jacobians
+        results["forward_us"] = metrics.forward_us(plain, test["X"])
+        if hyp:
+            results.update(hypothesis_figures(cfg, predictor, test, t_p))
         cert = None
-        if name == "student":
+        if name in ("student", "student_hyp"):
             table["teacher"] = metrics.ade(teacher, test, t_p)
-            results.update({f"teacher_{k}": v for k, v in table["teacher"].items()})
-            results.update(metrics.jac_rel_err(predictor, teacher, test["X"][:512].astype(float)))
+            results.update({f"{k}_teacher": v for k, v in table["teacher"].items()})
+            results.update(metrics.jac_rel_err(plain, teacher.given(np.zeros(test["X"].shape[2])) if hyp else teacher,
+                                               test["X"][:512].astype(float)))
             t1 = time.perf_counter()
-            cert, emp = certify(cfg.model.certificate, predictor, test["X"].astype(float), np.random.default_rng(cfg.seed))
-            results.update({f"cert_{k}": v for k, v in cert.items() if k not in ("rho_used", "scenarios")})
+            cert, emp = (certify_hypotheses if hyp else certify)(cfg.model.certificate, predictor, test["X"].astype(float),
+                                                                 np.random.default_rng(cfg.seed))
+            results.update({f"cert_{k}": v for k, v in cert.items() if k not in ("rho_used", "scenarios", "hypotheses")})
             results.update({f"cert_{name}_{k}": sc[k] for name, sc in cert["scenarios"].items() for k in SCENARIO_METRICS})
             results.update(emp)
             results.update(certificate.ratios(cert, emp))
@@ -214,13 +258,17 @@ def run(cfg: DictConfig):
             certificate.verify(cert, emp)
 
         models_dir = Path(cfg.models_dir)
-        models.check_finite(predictor.phi_jac(models.probe_window(*test["X"].shape[1:3])), best,
+        models.check_finite(plain.phi_jac(models.probe_window(*test["X"].shape[1:3])), best,
                             f"the trained {name} is not kept; {models_dir} is left as it was")
         with staged(models_dir) as stage:  # models/ changes only if every check below passes, as one set
-            export_onnx(predictor.module, stage / f"{name}.onnx")
+            meta = dataset.read_meta(cfg.dataset_dir)  # traced at the window it was trained on
+            export_onnx(predictor.module, stage / f"{name}.onnx", meta["T_obs"], meta["N"] + 1)
             onnx = load_onnx(name, stage)
-            results["onnx_max_err_m"] = float(np.abs(onnx.phi(test["X"][:256]) - predictor.phi(test["X"][:256])).max())
-            results["forward_us_onnx"] = metrics.forward_us(onnx, test["X"])
+            if hyp:
+                results.update(onnx_parity(onnx, predictor, test["X"][:256], np.random.default_rng(cfg.seed)))
+            else:
+                results["onnx_max_err_m"] = float(np.abs(onnx.phi(test["X"][:256]) - predictor.phi(test["X"][:256])).max())
+            results["forward_us_onnx"] = metrics.forward_us(plain_onnx(onnx) if hyp else onnx, test["X"])
             if not results["onnx_max_err_m"] <= ONNX_TOL_M:
                 raise UserError(f"{models_dir / name}.onnx disagrees with torch by {results['onnx_max_err_m']:.2e} m")
             shutil.copyfile(best, stage / f"{name}.ckpt")
@@ -229,12 +277,54 @@ def run(cfg: DictConfig):
                        "sampled": emp, "ratios": certificate.ratios(cert, emp),
                        "box": {k: v for k, v in OmegaConf.to_container(cfg.model.certificate, resolve=True).items()
                                if k != "scenarios"},
-                       "checkpoint": str(models_dir / f"{name}.ckpt"), "conventions": certificate.__doc__}
-                (stage / "certificate.json").write_text(json.dumps(doc, indent=1))
-                mlflow.log_artifact(str(stage / "certificate.json"))
+                       "checkpoint": str(models_dir / f"{name}.ckpt"), "conventions": certificate.__doc__,
+                       "certifies": {f: sha256(stage / f) for f in (f"{name}.ckpt", f"{name}.onnx")}}  # certified_rho checks them
+                if hyp:
+                    doc["hypotheses"] = cert.pop("hypotheses")
+                    doc["constants_m"].pop("hypotheses")
+                (stage / cert_file).write_text(json.dumps(doc, indent=1))
+            made_models(stage / f for f in (f"{name}.ckpt", f"{name}.onnx", cert_file) if (stage / f).exists())
+            mlflow.onnx.log_model(onnx_model.load(str(stage / f"{name}.onnx")), name=name, pip_requirements=["onnxruntime"])
             mlflow.log_metrics({k: float(v) for k, v in results.items()})
     log.info(summary(name, table, results, cert))
     return results
+
+
+BELIEF_TOL = 1e-4  # onnxruntime against torch, the belief (-)
+
+
+def hypothesis_figures(cfg, predictor, test, t_p) -> dict:
+    """metrics.hypothesis_quality on the evaluation split, the prior from the training split, the mean model of the same
+    kind (models_dir/teacher for teacher_hyp) beside it where it exists; the reliability figure logged to MLflow."""
+    prior = metrics.yield_prior(dataset.load(cfg.dataset_dir, "train"))
+    mean_name = cfg.model.name.removesuffix("_hyp")
+    mean = models.load(mean_name, cfg.models_dir) if (Path(cfg.models_dir) / f"{mean_name}.ckpt").is_file() else None
+    png = Path(cfg.run_dir) / "belief_reliability.png"
+    png.parent.mkdir(parents=True, exist_ok=True)
+    out = metrics.hypothesis_quality(predictor, test, t_p, prior, dataset.read_meta(cfg.eval_dir)["dt"], mean, png)
+    if png.exists():
+        mlflow.log_artifact(str(png), "plots")
+    return out
+
+
+def onnx_parity(onnx, predictor, X, rng) -> dict:
+    """Largest onnxruntime-against-torch differences of a hypothesis model on windows X under random hypotheses: next
+    (m) and belief (-); a UserError beyond ONNX_TOL_M or BELIEF_TOL."""
+    hyp = (rng.random(X.shape[:1] + X.shape[2:3]) < 0.5).astype(float)
+    nxt, belief = onnx.answers(X, hyp)
+    out = {"onnx_max_err_m": float(np.abs(nxt - predictor.given(hyp).phi(X.astype(float))).max()),
+           "onnx_belief_max_err": float(np.abs(belief - predictor.belief(X.astype(float))).max())}
+    if not out["onnx_belief_max_err"] <= BELIEF_TOL:
+        raise UserError(f"{onnx.name}.onnx's belief disagrees with torch by {out['onnx_belief_max_err']:.2e}")
+    return out
+
+
+def plain_onnx(onnx):
+    """A hypothesis model's ONNX predictor under nobody yielding, as phi(window): what forward_us_onnx times."""
+    class Plain:
+        def phi(self, window):
+            return onnx.answers(window, np.zeros(np.shape(window)[:1] + np.shape(window)[2:3]))[0]
+    return Plain()
 
 
 def summary(name, table, r, cert):
@@ -245,6 +335,23 @@ def summary(name, table, r, cert):
              f"{'predictor':10s}" + "".join(f"{c:>21s}" for c in cols)]
     for k, m in table.items():
         lines.append(f"{k:10s}" + "".join(f"{m[c]:21.4f}" for c in cols))
+    if "belief_brier" in r:
+        lines.append(f"rollout error (m) on the cars the ego encroaches on, per recorded hypothesis: yield "
+                     f"{r['ade_rollout_m_yielders']:.3f} (given the opposite {r['ade_rollout_m_yielders_opposite']:.3f}, "
+                     f"cv {r['ade_rollout_m_yielders_cv']:.3f}), stubborn {r['ade_rollout_m_stubborn']:.3f} (given the "
+                     f"opposite {r['ade_rollout_m_stubborn_opposite']:.3f}, cv {r['ade_rollout_m_stubborn_cv']:.3f})"
+                     + (f"; mean model: yield {r['ade_rollout_m_yielders_mean']:.3f}, stubborn {r['ade_rollout_m_stubborn_mean']:.3f}"
+                        if "ade_rollout_m_yielders_mean" in r else ""))
+        lines.append(f"belief on {r['n_belief_cases']} encroached cars: Brier {r['belief_brier']:.4f} vs constant prior "
+                     f"{r['belief_prior']:.2f}'s {r['belief_brier_prior']:.4f} (ratio {r['belief_brier_ratio']:.2f}); AUC "
+                     f"{r['belief_auc']:.3f}; at " + ", ".join(f"{lag:.1f}" for lag in metrics.BELIEF_LAGS_S)
+                     + " s after the first encroachment: AUC " + " ".join(f"{r[f'belief_auc_{lag:.1f}s']:.2f}" for lag in metrics.BELIEF_LAGS_S)
+                     + " (the data's reveal " + " ".join(f"{r[f'seen_auc_{lag:.1f}s']:.2f}" for lag in metrics.BELIEF_LAGS_S)
+                     + "); on the car nearest behind the ego " + " ".join(f"{r[f'belief_auc_nearest_{lag:.1f}s']:.2f}" for lag in metrics.BELIEF_LAGS_S)
+                     + " (reveal " + " ".join(f"{r[f'seen_auc_nearest_{lag:.1f}s']:.2f}" for lag in metrics.BELIEF_LAGS_S) + ")")
+        lines.append("braking under the own hypothesis (AUC for > 4 m/s^2, false alarms > 3 m/s^2 where truly < 2): "
+                     + "; ".join(f"{label} AUC {r[f'brake_auc_{label}']:.3f}, alarms {r[f'brake_fa_{label}']:.3f} "
+                                 f"({r[f'n_brake_cases_{label}']} cars braking > 1 m/s^2)" for label in ("yielders", "stubborn")))
     if cert is not None:
         lines.append(f"jac_rel_err {r['jac_rel_err']:.4f} (w.r.t. the ego's inputs {r['jac_rel_err_ego']:.4f}) vs teacher autodiff")
         lines.append(f"certificate (m): s_x {cert['s_x']:.2f}  s_y {cert['s_y']:.2f}  theta_x {cert['theta_x']:.4g}  "

@@ -6,8 +6,9 @@ Episodes run on local joblib processes (`backend=loky`, the default) or on a Ray
 backend; `ray.address=auto` or `ray://host:10001` joins a running cluster, null starts a local instance). Either way an
 episode depends only on its seed, so both give the same per-episode results.
 
-An episode that raises is recorded as a crash with its message in the CSV; the batch goes on, and then fails with the
-count (exit 2, MLflow run FAILED) unless `tolerate_crashes=true`; a batch in which every episode crashed always fails.
+An episode that raises, or whose local worker process is killed (SIGKILL, as the out-of-memory killer ends one), is
+recorded as a crash with its message in the CSV; the batch goes on, and then fails with the count (exit 2, MLflow run
+FAILED) unless `tolerate_crashes=true`; a batch in which every episode crashed always fails.
 Rates and means are over the episodes that finished; `episodes` counts all N, so `compare` weights the run by its size.
 Beside each method's per-episode CSV, steps/<method>_<seed>.csv holds each finished episode's per-step CSV
 (planner/report.py write_csv; written here, not by the workers, so a Ray cluster needs no shared disk): the recorded
@@ -20,7 +21,7 @@ would reach below 0.
 import contextlib
 import csv
 import logging
-import os
+import re
 import signal
 import sys
 
@@ -30,6 +31,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from joblib import Parallel, delayed, effective_n_jobs, parallel_config  # noqa: E402
+from joblib.externals.loky import FIRST_COMPLETED, BrokenProcessPool, ProcessPoolExecutor, wait  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
@@ -38,7 +40,7 @@ from core.jobs import Stopped, UserError, mlflow_run, quiet, stop_signal  # noqa
 from planner import report, setup  # noqa: E402
 from planner.closed_loop import Episode  # noqa: E402
 
-FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (steps, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
+FIGURES = {"b_imposed_max": "largest braking imposed on another car (m/s^2)", "t_merge": "t_merge (s, merged episodes)", "C_max": "C_max", "d_min_m": "d_min (m)",
            "step_ms": "MPC step wall time (ms, every step)", "admm_iters_mean": "ADMM iterations (episode mean)",
            "fallbacks": "fallbacks per episode"}
 RESAMPLES = 2000  # bootstrap resamples of the episode means; seeded (0): the same rows always give the same interval
@@ -72,7 +74,12 @@ def episode(cfg_dict: dict, method: str, seed: int):
     except Exception as e:  # one bad episode must not kill a thousand: count it and carry its message
         if stop_signal() is not None:  # the error came from a stop signal caught inside a library: stop, not a crash
             raise Stopped(stop_signal()) from e
-        return {"seed": seed, "crash": 1, "nan": 0, "error": f"{type(e).__name__}: {e}"[:500]}, [], [], []
+        return crashed(seed, f"{type(e).__name__}: {e}")
+
+
+def crashed(seed: int, error: str):
+    """episode()'s answer for an episode that crashed with `error`: its CSV row and no steps."""
+    return {"seed": seed, "crash": 1, "nan": 0, "error": error[:500]}, [], [], []
 
 
 def aggregate(rows, step_ms, iters) -> dict:
@@ -86,9 +93,31 @@ def aggregate(rows, step_ms, iters) -> dict:
             "admm_iters_mean": safe(np.mean, iters), **stats.outcomes([done], RESAMPLES, seed=0)}
 
 
+PROGRESS_S = 5.0  # s between progress lines without a terminal (a log file, nohup, SLURM); none for a shorter batch
+
+
+class Lines:
+    """A file for tqdm without a terminal: each refresh its own line, not a '\\r' redraw."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def write(self, s):
+        s = s.replace("\r", "").strip()
+        if s:
+            self.f.write(s + "\n")
+
+    def flush(self):
+        self.f.flush()
+
+
 def progress(iterable, total: int, desc: str):
-    """`iterable` with a tqdm bar on stderr (none when quiet())."""
-    return tqdm(iterable, total=total, desc=desc, unit="ep", disable=quiet(), dynamic_ncols=True)
+    """`iterable` with tqdm's progress on stderr: a bar on a terminal, else a line (done/total, rate, ETA) at most every
+    PROGRESS_S, the first once PROGRESS_S have passed."""
+    if not quiet():
+        return tqdm(iterable, total=total, desc=desc, unit="ep", dynamic_ncols=True)
+    return tqdm(iterable, total=total, desc=desc, unit="ep", file=Lines(sys.stderr), mininterval=PROGRESS_S,
+                delay=PROGRESS_S, ascii=True, ncols=90)
 
 
 @contextlib.contextmanager
@@ -119,15 +148,16 @@ def write_csv(rows, path):
         w.writerows(rows)
 
 
-def histograms(rows, step_ms, out_dir, tag, title):
-    """One PNG per figure in FIGURES: its distribution over the finished episodes (step_ms: over every step)."""
+def histograms(rows, step_ms, out_dir, tag, title, dt):
+    """One PNG per figure in FIGURES: its distribution over the finished episodes (step_ms: over every step; t_merge in
+    s, dt a step)."""
     done = [r for r in rows if not r["crash"]]
     paths = []
     for key, label in FIGURES.items():
         if key == "step_ms":
             values = np.asarray(step_ms, float)
         else:
-            values = np.array([r[key] for r in done if key != "t_merge" or r["merged"]], float)
+            values = np.array([r[key] for r in done if key != "t_merge" or r["merged"]], float) * (dt if key == "t_merge" else 1)
         fig, ax = plt.subplots(figsize=(6, 3.5))
         ax.hist(values[np.isfinite(values)], bins=30, color="tab:blue", alpha=0.8)
         ax.set(xlabel=label, ylabel="count", title=f"{title}\n{label}, n = {np.isfinite(values).sum()}")
@@ -138,15 +168,59 @@ def histograms(rows, step_ms, out_dir, tag, title):
     return paths
 
 
-def start_workers(n_jobs) -> None:
-    """Start joblib's loky workers with SIGINT blocked, a mask they inherit: Ctrl-C, which reaches every process of the
-    terminal's group, stops the batch through this process alone (a worker hit while importing would print its own
-    traceback); one that arrives meanwhile is delivered here as soon as the mask is lifted."""
+@contextlib.contextmanager
+def sigint_blocked():
+    """SIGINT blocked in this thread, a mask the worker processes started inside inherit: Ctrl-C, which reaches every
+    process of the terminal's group, stops the batch through this process alone (a worker hit while importing would
+    print its own traceback); one that arrives meanwhile is delivered here as soon as the mask is lifted."""
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        Parallel(n_jobs=n_jobs)(delayed(os.getpid)() for _ in range(effective_n_jobs(n_jobs)))  # later calls reuse them
+        yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}  # the workers fill the cores
+
+
+def drive_local(cfg_dict, method: str, seeds, n_jobs, bar) -> list:
+    """[episode(...)] of `seeds` in seed order on n_jobs local worker processes, each its own one-worker loky executor:
+    a worker killed outright (SIGKILL, as the out-of-memory killer ends one) is the crash of the episode it was
+    driving alone; the other workers drive on and a fresh one takes its place."""
+    slots = min(effective_n_jobs(n_jobs), len(seeds))
+    if slots <= 1:  # one worker: this process, as joblib runs one job
+        out = []
+        for seed in seeds:
+            out.append(episode(cfg_dict, method, seed))
+            bar.update()
+        return out
+    todo, done, busy, pools = list(seeds), {}, {}, [None] * slots  # busy: {future: (worker slot, seed)}
+    try:
+        while todo or busy:
+            for i in sorted(set(range(len(pools))) - {i for i, _ in busy.values()})[:len(todo)]:
+                seed = todo.pop(0)
+                with sigint_blocked():  # a worker starts when its first episode is submitted
+                    pools[i] = pools[i] or ProcessPoolExecutor(max_workers=1, env=ONE_THREAD)
+                    busy[pools[i].submit(episode, cfg_dict, method, seed)] = (i, seed)
+            finished, _ = wait(busy, return_when=FIRST_COMPLETED)
+            if stop_signal() is not None:  # a library in this process caught the signal's Stopped and carried on
+                raise Stopped(stop_signal())
+            for f in finished:
+                i, seed = busy.pop(f)
+                try:
+                    done[seed] = f.result()
+                except BrokenProcessPool as e:  # its worker died without an answer: no other episode was on it
+                    codes = re.search(r"exit codes of the workers are (.*)", str(e))
+                    done[seed] = crashed(seed, f"{type(e).__name__}: its worker process was killed "
+                                               f"({codes.group(1) if codes else 'no exit code'}; out of memory?)")
+                    pools[i].shutdown()
+                    pools[i] = None
+                bar.update()
+    finally:
+        for pool in pools:
+            if pool is not None:  # its workers ended and their queues' semaphores released (else loky warns at exit)
+                pool.shutdown(kill_workers=True)
+    return [done[seed] for seed in seeds]
 
 
 def drive_all(cfg, method: str) -> list:
@@ -158,12 +232,7 @@ def drive_all(cfg, method: str) -> list:
     out = []
     with backend(cfg), progress(None, len(seeds), f"{method} episodes") as bar:
         if cfg.backend == "loky":  # results stream back one by one
-            start_workers(cfg.n_jobs)
-            for o in Parallel(n_jobs=cfg.n_jobs, return_as="generator")(tasks(seeds)):
-                if stop_signal() is not None:  # a library in this process caught the signal's Stopped and carried on
-                    raise Stopped(stop_signal())
-                out.append(o)
-                bar.update()
+            out = drive_local(cfg_dict, method, seeds, cfg.n_jobs, bar)
         else:  # Ray's joblib backend returns whole lists only: progress in chunks of a few episodes per worker
             chunk = 4 * effective_n_jobs(cfg.n_jobs)
             for i in range(0, len(seeds), chunk):
@@ -172,16 +241,17 @@ def drive_all(cfg, method: str) -> list:
     return out
 
 
-def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
-    """One method's batch inside its MLflow run, opened first (a stopped batch ends KILLED): drive_all, aggregate, write
-    the CSV, the per-step CSVs (steps/) and histograms to out_dir and log the first and last; returns its metrics.
+def record(cfg, scenario, source, s, method: str, out_dir, params=None, accuracy=None) -> tuple[dict, str]:
+    """One method's batch inside its MLflow run, opened first (a stopped batch ends KILLED), with `params` and the
+    source's `accuracy` metrics (planner.compare.source_link): drive_all, aggregate, write the CSV, the per-step CSVs
+    (steps/) and histograms to out_dir and log the first and last; returns (its metrics, its run id).
     Crashed episodes then fail the run with their count (UserError), unless cfg.tolerate_crashes; a batch whose every
     episode crashed always fails."""
     import mlflow
 
     tag = f"{method}_{source.name}_{scenario.name}"
-    with mlflow_run("planner", cfg, run_name=f"batch-{method}-{source.name}-{scenario.name}", method=method,
-                    episodes=cfg.episodes, **setup.run_params(scenario, source, cfg)):
+    params = {**setup.run_params(scenario, source, cfg), **(params or {}), "method": method, "episodes": cfg.episodes}
+    with mlflow_run("planner", cfg, run_name=report.run_name(method, source, cfg, scenario), **params) as run_:
         out = drive_all(cfg, method)
         rows = [o[0] for o in out]
         step_ms = [t for o in out for t in o[1]]
@@ -193,8 +263,8 @@ def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
         for row, *_, steps in out:
             if steps:
                 report.write_csv(Episode(rows=steps), out_dir / "steps" / f"{method}_{row['seed']}.csv")
-        plots = histograms(rows, step_ms, out_dir, tag, title) if cfg.plots else []
-        mlflow.log_metrics(r)
+        plots = histograms(rows, step_ms, out_dir, tag, title, scenario.params.dt) if cfg.plots else []
+        mlflow.log_metrics({**report.mlflow_metrics(r, scenario.params.dt), **(accuracy or {})})
         mlflow.log_artifact(str(csv_path))
         for p in plots:
             mlflow.log_artifact(str(p), "plots")
@@ -203,16 +273,18 @@ def record(cfg, scenario, source, s, method: str, out_dir) -> dict:
             log.info(f"[{method}] crash: {e}")
         ci = lambda k, f: f"{r[k]:{f}} [{r[k + '_lo']:{f}}, {r[k + '_hi']:{f}}]"
         log.info(f"[{method}] {title} (95% intervals): courteous merges {ci('courteous', '.1%')}, merged {ci('merged', '.1%')}, collision {ci('collision', '.1%')}, "
-                 f"t_merge {ci('t_merge', '.1f')} steps, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / "
+                 f"t_merge {ci('t_merge', '.1f')} steps of {scenario.params.dt:g} s, d_min {r['d_min_m']:.2f} m, step {r['step_ms_median']:.1f} ms median / "
                  f"{r['step_ms_p95']:.1f} p95, fallbacks per episode {ci('fallbacks', '.2f')}, {r['crashes']:.0f} crashes, "
                  f"{r['nans']:.0f} NaN episodes; outputs in {out_dir}")
         crashes = int(r["crashes"])
         if crashes == len(rows) or (crashes and not cfg.tolerate_crashes):
             keep = "" if crashes == len(rows) else "; tolerate_crashes=true keeps such a batch"
             raise UserError(f"{crashes} of {len(rows)} {method} episodes crashed (first: {errors[0]}); see {csv_path}{keep}")
-    return r
+    return r, run_.info.run_id
 
 
-def run(cfg, scenario, source, s, methods, out_dir) -> dict:
-    """Drive cfg.episodes episodes per method, write and log each method's batch; returns {method: metrics}."""
-    return {m: record(cfg, scenario, source, s, m, out_dir) for m in methods}
+def run(cfg, scenario, source, s, methods, out_dir, params=None, accuracy=None) -> tuple[dict, dict]:
+    """Drive cfg.episodes episodes per method, write and log each method's batch (record); returns ({method: metrics},
+    {method: run id})."""
+    done = {m: record(cfg, scenario, source, s, m, out_dir, params, accuracy) for m in methods}
+    return {m: r for m, (r, _) in done.items()}, {m: i for m, (_, i) in done.items()}

@@ -71,7 +71,7 @@ def drive(world: World, planner, source, x_ref, target_lane, T_obs, max_steps, o
         step_ms = 1e3 * (time.perf_counter() - t0)
         check_stopped()  # a step falls back on any error, also on one a stop signal caused inside its solver
         u = np.nan_to_num(result.u)
-        hits = world.step(u) if others == "reactive" else predictor_move(world, seen.history, seen.ids, u, source)
+        hits = world.step(u) if others == "reactive" else predictor_move(world, seen.history, seen.ids, u, source.at(seen.history))
         if any(0 in pair for pair in hits):
             ep.collided = True
         braking = outcomes.b_imposed_max([z, world.states()], world.params.dt)  # this step's, m/s^2

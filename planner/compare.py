@@ -9,7 +9,7 @@ others means; t_merge is averaged over merged episodes only. The table shows the
 param that differs between rows.
 
 Accuracy columns belong to the row's predictor and gradient source: the latest `distill` run of its model (constant
-velocity: the `cv_*` metrics that run logs beside its own; the analytic predictor is not measured), the latest
+velocity: the `*_cv` metrics that run logs beside its own; a hypothesis model: its belief_* too; the analytic predictor is not measured), the latest
 `surrogate` run for the surrogate's gradients, and the latest `interaction` run of the source (bench/interaction.py:
 react_* for its rollout response, react_*_jac for its first-order response).
 
@@ -17,17 +17,28 @@ It prints a short table, the params that tell rows apart and the cells of SHORT 
 fallbacks, gradient error, step time), and writes every column to compare.csv.
 """
 import logging
-import os
 from pathlib import Path
 
 import hydra
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from core import stats, validate
-from core.jobs import CONF_DIR, DEFAULT_TRACKING_URI, UserError, console, guarded, mlflow_run, open_experiment, options
+from core.jobs import (
+    CONF_DIR,
+    MODEL_FILES,
+    UserError,
+    console,
+    guarded,
+    mlflow_run,
+    model_runs,
+    open_experiment,
+    options,
+    tracking_uri,
+)
 from planner.gradients import predictor_of
+from planner.report import MLFLOW_NAMES
 from surrogate.evaluate import HEADLINE, metric
 
 log = logging.getLogger(__name__)
@@ -39,7 +50,8 @@ GRADIENT = {"grad_cosine": ("grad_cosine", ""), "grad_rel_err": ("grad_rel_err",
 # column: (score, end) of d b_i/dZ against teacher autodiff on the surrogate job's held-out planning states, along single
 # coordinates of Z and along ramps, plans the ego can drive; react_wrel_err weighs each state by its reaction's size
 # (surrogate.evaluate)
-ACCURACY = ["ade_1step_m", "ade_rollout_m", "jac_rel_err", *GRADIENT]
+BELIEF = ["belief_brier", "belief_brier_ratio", "belief_auc_0.8s"]  # a hypothesis model's belief: Brier, its ratio to the prior's, AUC 0.8 s in
+ACCURACY = ["ade_1step_m", "ade_rollout_m", *BELIEF, "jac_rel_err", *GRADIENT]
 SOURCE_SUFFIX = {"surrogate": "", "student": "_student", "cv": "_cv"}  # a gradient source's d b_i/dZ scores in the surrogate
 # job's metrics (grad_rel_err, grad_rel_err_student, ...; the surrogate over the student's values: scored_as); the other
 # sources are not scored there
@@ -57,9 +69,9 @@ def latest(runs: pd.DataFrame, param: str, value: str) -> pd.Series | None:
     return None if hit.empty else hit.sort_values("start_time").iloc[-1]
 
 
-def metrics_of(run: pd.Series | None, keys, prefix: str = "") -> dict:
-    """{key: run's metric `prefix + key`} (NaN where absent or no run)."""
-    return {k: np.nan if run is None else run.get(f"metrics.{prefix}{k}", np.nan) for k in keys}
+def metrics_of(run: pd.Series | None, keys, suffix: str = "") -> dict:
+    """{key: run's metric `key + suffix`} (NaN where absent or no run)."""
+    return {k: np.nan if run is None else run.get(f"metrics.{k}{suffix}", np.nan) for k in keys}
 
 
 def gradient_error(run: pd.Series | None, source: str) -> dict:
@@ -77,14 +89,14 @@ def scored_as(gradients: str, predictor: str | None = None) -> str | None:
 
 def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame,
              interaction_runs: pd.DataFrame) -> dict:
-    """Accuracy columns of a row: its predictor's ADE (m), its gradient's error against teacher autodiff beside the
-    trivial baselines' on the same states (grad_rel_err_cv, grad_rel_err_mean, react_rel_err_mean), the source's
-    interaction scores."""
+    """Accuracy columns of a row: its predictor's ADE (m) and its belief's calibration (hypothesis models), its gradient's
+    error against teacher autodiff beside the trivial baselines' on the same states (grad_rel_err_cv, grad_rel_err_mean,
+    react_rel_err_mean), the source's interaction scores."""
     row = {k: np.nan for k in ACCURACY}
     if predictor in validate.TRAINED_PREDICTORS:  # a model with a `distill` run of its own
-        row.update(metrics_of(latest(distill_runs, "model", predictor), ("ade_1step_m", "ade_rollout_m")))
+        row.update(metrics_of(latest(distill_runs, "model", predictor), ("ade_1step_m", "ade_rollout_m", *BELIEF)))
     elif predictor == "cv":  # every distill run evaluates constant velocity on its test split beside its own model
-        row.update(metrics_of(latest(distill_runs, "model", "teacher"), ("ade_1step_m", "ade_rollout_m"), "cv_"))
+        row.update(metrics_of(latest(distill_runs, "model", "teacher"), ("ade_1step_m", "ade_rollout_m"), "_cv"))
     if gradients == "student":  # the student's Jacobian against the teacher's, measured by its distill run
         row.update(metrics_of(latest(distill_runs, "model", "student"), ("jac_rel_err",)))
     scored = latest(surrogate_runs, "source", "teacher")  # the surrogate job scores each source's d b_i/dZ on its states
@@ -97,6 +109,36 @@ def accuracy(gradients: str, predictor: str, distill_runs: pd.DataFrame, surroga
         row.update({metric(k, s): v for k, v in gradient_error(scored, s).items() if k in HEADLINE})
     row.update(metrics_of(latest(interaction_runs, "source", gradients), INTERACTION))
     return row
+
+
+ACCURACY_LOGGED = (*ACCURACY, *(metric(k, b) for k in HEADLINE for b in BASELINES.values()), *INTERACTION)
+# what a planner run logs of its source's accuracy (source_link), compare's columns of the same names
+
+
+def same_models(runs: pd.DataFrame, files: dict) -> pd.DataFrame:
+    """The runs whose logged model hashes (params sha256.<file>) agree with `files` ({file: sha256}) on every file both
+    name."""
+    keep = pd.Series(True, index=runs.index)
+    for f, digest in files.items():
+        col = f"params.sha256.{f}"
+        if col in runs:
+            keep &= runs[col].isna() | (runs[col] == digest)
+    return runs[keep]
+
+
+def source_link(gradients: str, predictor: str) -> tuple[dict, dict]:
+    """(params, metrics) a planner run logs to tie it to its models' runs: model_run.<file> = the id of the run that made
+    each model file this process read (core.jobs.model_runs), and the source's accuracy (ACCURACY_LOGGED: its
+    predictor's ADE, its gradient error against teacher autodiff, its interaction scores) from those runs, from the
+    newest runs of the source where none made them (cv), and from interaction runs over the same model files."""
+    made = model_runs(MODEL_FILES)
+    ids = {r.info.run_id for r in made.values()}
+    distill, surrogate = search("distill"), search("surrogate")
+    linked = lambda runs: runs[runs["run_id"].isin(ids)] if not runs.empty and runs["run_id"].isin(ids).any() else \
+        same_models(runs, MODEL_FILES)
+    acc = accuracy(gradients, predictor, linked(distill), linked(surrogate), same_models(search("interaction"), MODEL_FILES))
+    return ({f"model_run.{f}": r.info.run_id for f, r in made.items()},
+            {k: float(v) for k, v in acc.items() if k in ACCURACY_LOGGED and np.isfinite(v)})
 
 
 def param_frame(runs: pd.DataFrame, columns, ignore) -> pd.DataFrame:
@@ -119,6 +161,8 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
     intervals, median step times, accuracy. Its param columns, `columns` then every other that differs between rows,
     are listed in df.attrs["params"]."""
     runs = planner_runs[planner_runs["status"] == "FINISHED"].copy() if not planner_runs.empty else planner_runs
+    if "tags.mlflow.parentRunId" in runs:  # a parent run (method=both, a sweep) holds no episodes of its own
+        runs = runs[~runs["run_id"].isin(set(runs["tags.mlflow.parentRunId"].dropna()))]
     if runs.empty:
         raise UserError("no finished planner runs in the MLflow store: run `planner` first")
     interaction_runs = pd.DataFrame() if interaction_runs is None else interaction_runs
@@ -131,18 +175,23 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
         row = dict(zip(group_by, key if isinstance(key, tuple) else (key,)))
         row["n_runs"] = len(g)
         row["n_episodes"] = int(w.sum())
-        pooled = stats.outcomes([[{"n": n, **{m: r.get(f"metrics.{m}", np.nan) for m in (*stats.RATES, *MEANS)}}
+        logged = lambda r, m: r.get(f"metrics.{MLFLOW_NAMES.get(m, m)}", np.nan)
+        pooled = stats.outcomes([[{"n": n, **{m: logged(r, m) for m in (*stats.RATES, *MEANS)}}
                                   for n, (_, r) in zip(w, g.iterrows())]], means=MEANS, weight="n")
         for m in stats.RATES:
             row[f"{m}_rate"], row[f"{m}_lo"], row[f"{m}_hi"] = pooled[m], pooled[f"{m}_lo"], pooled[f"{m}_hi"]
-        row.update({m: pooled[m] for m in MEANS})  # no intervals: the runs log no spread within their batches
+        # no intervals: the runs log no spread within their batches
+        row.update({MLFLOW_NAMES.get(m, m): pooled[m] for m in MEANS})
         row["d_min_m"] = float(g["metrics.d_min_m"].min()) if "metrics.d_min_m" in g else np.nan
-        for m in ("step_ms_median", "step_ms_p95"):
+        for m in ("step_median_ms", "step_p95_ms"):
             row[m] = float(g[f"metrics.{m}"].median()) if f"metrics.{m}" in g else np.nan
         gradients, predictor = row.get("gradients", "-"), row.get("predictor", "-")
         if predictor == "-":  # a run older than the `predictor` param: its gradient source's default predictor
             predictor = predictor_of(gradients) if gradients in options("gradients") else gradients
         row.update(accuracy(gradients, predictor, distill_runs, surrogate_runs, interaction_runs))
+        # what the runs themselves logged of their source's accuracy (linked by model hash: source_link) comes first
+        row.update({k: g[f"metrics.{k}"].dropna().iloc[0] for k in row if k in ACCURACY_LOGGED
+                    and f"metrics.{k}" in g and g[f"metrics.{k}"].notna().any()})
         row["runs"] = " ".join(sorted(r[:8] for r in g["run_id"])) if "run_id" in g else ""
         rows.append(row)
     df = pd.DataFrame(rows)
@@ -152,58 +201,65 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
     return df
 
 
+SHOWN = ("gradients", "method", "mpc", "scenario")  # what a marker's label says first
+
+
 def label(r: pd.Series, varying) -> str:
-    """A row's legend label: its gradient source and method, then every other grouping param that varies across rows."""
-    head = "/".join(str(r[c]) for c in ("gradients", "method") if c in r)
-    rest = ", ".join(f"{c}={r[c]}" for c in varying if c not in ("gradients", "method"))
+    """A row's marker label: its gradient source, method, mpc and scenario, then each other grouping param that varies
+    across rows (a model hash shortened to 8 characters)."""
+    head = "/".join(str(r[c]) for c in SHOWN if c in r and r[c] != "-")
+    short = lambda c: str(r[c])[:8] if c.startswith("sha256.") else str(r[c])
+    rest = ", ".join(f"{c.removeprefix('sha256.')}={short(c)}" for c in varying if c not in SHOWN)
     return f"{head} ({rest})" if rest else head
 
 
 def plot(df: pd.DataFrame, path: Path, group_by=()):
-    """Three panels against median MPC step time, one marker per row with a legend: gradient error (relative error of
-    d b_i/dZ against teacher autodiff along ramps, 95% interval, the trivial baselines as lines; along single
-    coordinates for runs scored before the ramps), courteous-merge rate with its 95%
-    Wilson interval, interaction fidelity of the gradient (react_corr_jac)."""
+    """Against median MPC step time (ms), one marker per row, each labelled beside it (label) with its episode count:
+    gradient error (relative error of d b_i/dZ against teacher autodiff along ramps, 95% interval, the trivial baselines
+    as lines; along single coordinates for runs scored before the ramps), courteous-merge rate with its 95% Wilson
+    interval, and interaction fidelity of the gradient (react_corr_jac); a panel no row has a value for is left out."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     varying = [c for c in group_by if c in df and df[c].nunique() > 1]
-    fig, axes = plt.subplots(1, 3, figsize=(16, 5.2))
-    cmap = plt.get_cmap("tab10" if len(df) <= 10 else "tab20")
-    markers = "osD^v<>Ph*X"
-    handles = []
     g = "ramp_grad_rel_err" if df["ramp_grad_rel_err"].notna().any() else "grad_rel_err"
-    for i, (_, r) in enumerate(df.iterrows()):
-        style = dict(color=cmap(i % cmap.N), marker=markers[i % len(markers)], ms=7, ls="none")
-        x = r["step_ms_median"]
-        err = r[g]
-        if np.isfinite(err):
-            bar = [[err - r[f"{g}_lo"]], [r[f"{g}_hi"] - err]]
-            axes[0].errorbar(x, err, yerr=bar if np.isfinite(r[f"{g}_lo"]) else None, capsize=4, **style)
-        yerr = [[r["courteous_rate"] - r["courteous_lo"]], [r["courteous_hi"] - r["courteous_rate"]]]
-        h = axes[1].errorbar(x, r["courteous_rate"], yerr=yerr if np.isfinite(r["courteous_lo"]) else None, capsize=4, **style)
-        if np.isfinite(r["react_corr_jac"]):
-            axes[2].plot(x, r["react_corr_jac"], **style)
-        handles.append((h, f"{label(r, varying)}: {r['n_episodes']} ep, {r['n_runs']} run{'s' * (r['n_runs'] > 1)}"))
-    for (name, s), ls in zip(BASELINES.items(), ("--", ":")):
-        level = df[f"{g}{s}"].dropna()
-        if len(level):
-            axes[0].axhline(level.iloc[0], color="k", ls=ls, lw=1, label=f"{name} (baseline)")
-            axes[0].legend(fontsize=8)
-    axes[0].set(xscale="log", ylabel="rel. error of d b_i/dZ vs teacher autodiff" + (" (along ramps)" if g != "grad_rel_err" else ""),
-                title="gradient error vs speed")
-    axes[1].set(xscale="log", ylabel="courteous-merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
-    axes[2].set(xscale="log", ylabel="react_corr_jac (first-order response vs true)", ylim=(-1.05, 1.05),
-                title="interaction fidelity vs speed")
-    for ax in axes:
-        ax.set_xlabel("median MPC step (ms)")
-        ax.axvline(200, color="tab:red", ls=":", lw=1)  # real time: one 0.2 s step
+    panels = [p for p in (g, "courteous_rate", "react_corr_jac") if df[p].notna().any()] or ["courteous_rate"]
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 5.2), squeeze=False)
+    cmap = plt.get_cmap("tab10")
+    markers = "osD^v<>Ph*X"
+    for ax, col in zip(axes[0], panels):
+        for i, (_, r) in enumerate(df.iterrows()):
+            x, y = r["step_median_ms"], r[col]
+            if not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            lo, hi = {g: (f"{g}_lo", f"{g}_hi"), "courteous_rate": ("courteous_lo", "courteous_hi")}.get(col, (None, None))
+            bar = [[y - r[lo]], [r[hi] - y]] if lo and np.isfinite(r[lo]) else None
+            ax.errorbar(x, y, yerr=bar, capsize=4, color=cmap(i % 10), marker=markers[i % len(markers)], ms=7, ls="none")
+            ax.annotate(f"{label(r, varying)}, {r['n_episodes']} ep", (x, y), xytext=(6, 4), textcoords="offset points",
+                        fontsize=7.5, color=cmap(i % 10))
+        ax.set(xscale="log", xlabel="median MPC step (ms)")
+        ax.axvline(200, color="tab:red", ls=":", lw=1, label="real time (one 0.2 s step)")
         ax.grid(alpha=0.3)
-    fig.legend([h for h, _ in handles], [t for _, t in handles], loc="lower center", ncol=min(3, len(handles)), fontsize=8,
-               frameon=False)
-    fig.tight_layout(rect=(0, 0.06 * (1 + (len(handles) - 1) // 3), 1, 1))
+    for ax, col in zip(axes[0], panels):
+        if col == g:
+            for (name, s), ls in zip(BASELINES.items(), ("--", ":")):
+                level = df[f"{g}{s}"].dropna()
+                if len(level):
+                    ax.axhline(level.iloc[0], color="k", ls=ls, lw=1, label=f"{name} (baseline)")
+            ax.set(ylabel="relative error of d b_i/dZ vs teacher autodiff" + (" (along ramps)" if g != "grad_rel_err" else ""),
+                   title="gradient error vs speed")
+        elif col == "courteous_rate":
+            ax.set(ylabel="courteous-merge rate (share of episodes, 95% Wilson interval)", ylim=(-0.05, 1.05),
+                   title="outcome vs speed")
+        else:
+            ax.set(ylabel="react_corr_jac (first-order response vs the world's, correlation)", ylim=(-1.05, 1.05),
+                   title="interaction fidelity vs speed")
+        ax.legend(fontsize=8, loc="best")
+    fig.suptitle(f"{len(df)} set-ups, {int(df['n_episodes'].sum())} episodes: each marker gradients/method/mpc/scenario",
+                 fontsize=10)
+    fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -212,7 +268,9 @@ def search(experiment: str, scenario=None) -> pd.DataFrame:
     """All runs of an MLflow experiment (empty frame if it does not exist), optionally of one scenario."""
     import mlflow
 
-    mlflow.set_tracking_uri(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_TRACKING_URI))
+    mlflow.set_tracking_uri(tracking_uri())
+    if mlflow.get_experiment_by_name(experiment) is None:
+        return pd.DataFrame()
     runs = mlflow.search_runs(experiment_names=[experiment])
     if scenario and not runs.empty and "params.scenario" in runs:
         runs = runs[runs["params.scenario"] == scenario]
@@ -237,17 +295,18 @@ def gradient_cell(r: pd.Series) -> str:
 
 SHORT = {"n_episodes": lambda r: str(r["n_episodes"]),
          "courteous % [95% CI]": lambda r: fmt(100 * r["courteous_rate"], ".1f", 100 * r["courteous_lo"], 100 * r["courteous_hi"]),
-         "t_merge": lambda r: fmt(r["t_merge"], ".1f"),
+         "t_merge s": lambda r: fmt(r["t_merge_s"], ".1f"),
          "fallbacks": lambda r: fmt(r["fallbacks"]),
          "grad error": gradient_cell,
-         "step ms med/p95": lambda r: f"{fmt(r['step_ms_median'], '.1f')}/{fmt(r['step_ms_p95'], '.1f')}"}
+         "step ms med/p95": lambda r: f"{fmt(r['step_median_ms'], '.1f')}/{fmt(r['step_p95_ms'], '.1f')}"}
 # the printed table's outcome columns (compare.csv has every column): what each row's source bought, at what speed;
-# t_merge in steps, fallbacks per episode, grad error: d b_i/dZ against teacher autodiff (gradient_cell)
+# t_merge in s, fallbacks per episode, grad error: d b_i/dZ against teacher autodiff (gradient_cell)
 
 
 def short(df: pd.DataFrame, params) -> pd.DataFrame:
-    """The printed table: the row's `params`, then SHORT's cells."""
-    return pd.concat([df[params].astype(str), pd.DataFrame({c: df.apply(f, axis=1) for c, f in SHORT.items()})], axis=1)
+    """The printed table: the row's `params` (a model file's sha256 as its first 8 characters), then SHORT's cells."""
+    shown = df[params].astype(str).apply(lambda col: col.str[:8] if col.name.startswith("sha256.") else col)
+    return pd.concat([shown, pd.DataFrame({c: df.apply(f, axis=1) for c, f in SHORT.items()})], axis=1)
 
 
 @guarded
@@ -255,16 +314,18 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     """Build the table, print it, write compare.csv and compare.png, log both to MLflow (experiment `compare`)."""
     validate.check(cfg, "compare")
     open_experiment("compare")  # one line if the store is unusable, before the searches
-    df = table(search(cfg.experiment, cfg.scenario), search("distill"), search("surrogate"), list(cfg.columns),
+    df = table(search(cfg.experiment, OmegaConf.select(cfg, "scenario.name")), search("distill"), search("surrogate"), list(cfg.columns),
                search("interaction"), list(cfg.ignore))
     group_by = df.attrs["params"]
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "compare.csv", index=False)
     plot(df, out / "compare.png", group_by)
-    with mlflow_run("compare", cfg):
+    name = f"compare-{cfg.experiment}-{OmegaConf.select(cfg, 'scenario.name') or 'every scenario'}"
+    with mlflow_run("compare", cfg, run_name=name):
         import mlflow
 
+        mlflow.log_table(df.astype(object).where(df.notna(), None), "compare_table.json")  # MLflow's own table view
         mlflow.log_artifact(str(out / "compare.csv"))
         mlflow.log_artifact(str(out / "compare.png"))
     lead = [c for c in cfg.columns if c in df]

@@ -1,8 +1,8 @@
-"""The one place DAQP (a dual active-set solver for small dense QPs) is called, by the compiled core (mpc.admm.core=compiled):
-the Delta- and alpha-update box QPs when their closed-form minimiser leaves the box, and the Z-step's QPs with b_i's
-linearisation as soft constraints priced by an L1 penalty, warm-started from the last working set within one ADMM solve.
+"""The one place DAQP (a dual active-set solver for small dense QPs) is called, by planner.admm's loop: the Delta- and
+alpha-update box QPs when their closed-form minimiser leaves the box, and the Z-step's QPs with b_i's linearisation as
+soft constraints priced by an L1 penalty, warm-started from the last working set within one ADMM solve.
 
-DAQP's C functions are called from numba (`solve`), so a whole ADMM solve runs as one compiled call (planner.jit_admm):
+DAQP's C functions are called from numba (`solve`), so a whole ADMM solve runs as one compiled call (planner.admm):
 the library is the daqp wheel's own extension module, its structs laid out as daqp 0.11's csrc/include/types.h (the
 version is pinned; tests/test_compiled_core.py checks these solves against daqp.Model's)."""
 import ctypes
@@ -82,7 +82,7 @@ def handle(n: int, rows: int = 0, soft: bool = False, price: float = 0.0) -> Han
 
 @lru_cache(maxsize=None)
 def shared(role: str, n: int, rows: int = 0, soft: bool = False, price: float = 0.0) -> Handle:
-    """One `handle` per role and shape for a whole process: for planner.jit_admm's one-call solves, each of which starts
+    """One `handle` per role and shape for a whole process: for planner.admm's solves, each of which starts
     it cold and is done with it when it returns (setting up a workspace costs about as much as a tenth of a step)."""
     return handle(n, rows, soft, price)
 
@@ -126,33 +126,3 @@ def optimal(x, flag):
 
 
 NO_ROWS = (np.zeros((0, 1)), np.zeros(0))  # A, c_lo of a box QP
-
-
-class DaqpBox:
-    """min 1/2 x'Px + q'x on the box of a planner.qp.BoxQP (its P, P^-1 and bounds kept here for the closed-form
-    kernels) by DAQP: cold at its first solve, then warm-started from the last working set."""
-
-    def __init__(self, qp):
-        self.P, self.P_inv, self.lo, self.hi = qp.P, qp.P_inv, qp.lo, qp.hi
-        self.h = None  # set up at the first solve: most box QPs never leave the closed form
-
-    def solve(self, q):
-        """The box QP's minimiser for linear term q by DAQP."""
-        cold = self.h is None
-        self.h = handle(len(self.lo)) if cold else self.h
-        return optimal(*solve(self.h, cold, self.P, np.ascontiguousarray(q, float), self.lo, self.hi, *NO_ROWS))
-
-
-class SoftQP:
-    """min 1/2 x'Hx + f'x + price sum max(0, c_lo - Ax) s.t. lo <= x <= hi, H fixed; cold at its first solve, then
-    warm-started from the last working set; A has `rows` rows. `soft` False: they are hard (c_lo may be -INF)."""
-
-    def __init__(self, H, price: float, soft: bool, rows: int):
-        self.H, self.price, self.soft, self.rows = np.ascontiguousarray(H), price, soft, rows
-        self.h = None  # set up at the first solve (never, when planner.jit_admm solves in one call with `shared` ones)
-
-    def solve(self, f, lo, hi, A, c_lo):
-        """The minimiser x for this linear term, box lo, hi (n,) and rows c_lo <= Ax (metres, m^2)."""
-        cold = self.h is None
-        self.h = handle(len(self.H), self.rows, self.soft, self.price) if cold else self.h
-        return optimal(*solve(self.h, cold, self.H, *(np.ascontiguousarray(a, float) for a in (f, lo, hi, A, c_lo))))

@@ -5,6 +5,7 @@ Each source offers `values(history, ego_futures)` (B, T_p, SLOTS, 2) for a batch
 Built by the `gradients` config group (conf/gradients/), each option naming its class, predictor and settings; each
 class declares what it can do as class attributes, readable from an option's `_target_` without building it.
 """
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +15,10 @@ from omegaconf import DictConfig, OmegaConf
 from core.jobs import CONF_DIR, UserError, atomic_file, options
 from core.rollout import react, rollout, rollout_jacobian
 from core.validate import TRAINED_PREDICTORS
+from data.world import World
 from distill.models import probe_window
-from planner.jit_rollout import KERNELS
+from planner.jit_interactive import open_loop
+from planner.jit_rollout import KERNELS, values_params
 from surrogate.kernels import compiled_phi
 
 BATCHED = 4  # new windows: from this many in one call the teacher's onnxruntime graph beats its numba kernel (one core:
@@ -30,16 +33,35 @@ class Source:
     needs_world = False  # reads the running world (the oracle): only the planner's closed loop, world=reactive
     differentiates = False  # derives from the predictor's forward pass alone, so it works over any predictor
     compiled = False  # the compiled core runs its rollout and chain rule itself (planner.jit_rollout.KERNELS)
-    judges = ()  # further Sources, the same predictor trained again (planner's `judges`), that also judge mpc=interactive's candidates
+    hypotheses = False  # gives belief(history) and given(hyp): rollouts under hypotheses of yielding, with their probabilities
 
     def __init__(self, name, predictor):
         self.name, self.predictor = name, predictor
 
+    def at(self, history):
+        """This source as one step plans with it, from that step's observed history (T_obs, SLOTS, 2): itself, but for a
+        source whose rollout depends on what it believes of the history (Hypotheses)."""
+        return self
+
     def values(self, history, ego_futures):
         """Predicted xy (B, T_p, SLOTS, 2) of every slot for each ego plan (B, T_p, 2); history (T_obs, SLOTS, 2): react
-        with the plans fixed in advance."""
+        with the plans fixed in advance, in one compiled call where the predictor's rollout is compiled (cv, the
+        student: planner.jit_interactive.open_loop)."""
         ego_futures = np.asarray(ego_futures, dtype=float)
+        params = values_params(self.predictor)
+        if params is not None:
+            return open_loop(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(ego_futures))
         return self.react(history, lambda window, tau: ego_futures[:, tau], ego_futures.shape[1], len(ego_futures))
+
+    def drive(self, history, policy, T: int):
+        """(Delta, alpha (K, T), Z (K, 4T), predicted xy (K, T, SLOTS, 2)) of K closed-loop candidates (planner.strategy.Chase)
+        driven T steps against the predictor from the observed history (T_obs, SLOTS, 2): in one compiled call where
+        its rollout is compiled, else the predictor's recursion calls the policy once a step (react)."""
+        params = values_params(self.predictor)
+        if params is not None:
+            return policy.compiled(params, history, T)
+        values = self.react(history, policy, T, len(policy.z))
+        return policy.Delta, policy.alpha, policy.Z, values
 
     def react(self, history, ego_next, T, B):
         """Predicted xy (B, T, SLOTS, 2) of every slot over T steps while B feedback policies drive the ego:
@@ -87,8 +109,6 @@ class Surrogate(Source):
     """A learned local Jacobian (the gradient network) paired with the predictor's values, through the chain rule."""
 
     def __init__(self, name, predictor, surrogate):
-        from planner.jit_rollout import jit_values
-
         super().__init__(name, predictor)
         self.surrogate = surrogate
         self.seen = (None, {})  # (history, {window bytes: next xy}) of the step being planned
@@ -98,7 +118,6 @@ class Surrogate(Source):
         self.joint = exported  # values and J from one file, J for a whole rollout in one call
         self.forward = kernel or (surrogate.phi if exported else predictor.phi)
         self.batched = surrogate.phi if exported else self.forward
-        self.rollouts = jit_values(predictor)  # the predictor's rollouts of a batch of plans in one compiled call, or None
 
     def phi(self, window):
         """Next xy (B, SLOTS, 2) of windows (B, T_obs, SLOTS, 2), m: the predictor's. Over the teacher, its network in
@@ -115,12 +134,6 @@ class Surrogate(Source):
         if new:
             memo.update(zip(new, (self.batched if len(new) >= BATCHED else self.forward)(window[list(new.values())])))
         return np.array([memo[k] for k in keys]).reshape(len(keys), *window.shape[2:])  # np.stack: 3x the cost
-
-    def values(self, history, ego_futures):
-        """Source.values, in one compiled call where the predictor's rollout is compiled (the student's)."""
-        if self.rollouts is None:
-            return super().values(history, ego_futures)
-        return self.rollouts(history, ego_futures)
 
     def react(self, history, ego_next, T, B):
         """Source.react with the memo of windows kept for one history (a step): a closed loop's does not grow."""
@@ -194,26 +207,91 @@ class CentralDifferences(Source):
 
 class WorldModel:
     """A ceiling for diagnosis, never a predictor the world follows: the running world itself, its drivers and their
-    true hidden decisions, driven on in deep copies with the ego put on each plan. planner.closed_loop hands it the
-    world and the observed slots' ids before every step (`world`, `ids`)."""
+    true hidden decisions (knows=all), or each decision only once the driver has shown it by braking for the ego, every
+    other driver taken as stubborn (knows=seen: the bound of a predictor without clairvoyance), or each decision once
+    an observer can tell it either way (World.decided) and every other driver given as both hypotheses with the
+    population's prior (knows=prior: the contingency oracle, hypotheses with their probabilities as a hypothesis model
+    gives them), driven on in copies with the ego put on each plan.
+    planner.closed_loop hands it the world and the observed slots' ids before every step (`world`, `ids`)."""
 
     name = "oracle"
     world = None  # the closed loop's world at the current step
     ids = None  # the world ids of the observation's slots (data.perception), ego first
 
-    def react(self, history, ego_next, T, B, yielding=None):
+    def __init__(self, knows: str):
+        """knows: all (the true hidden decisions), seen (World.seen_decisions) or prior (belief)."""
+        self.knows = knows
+
+    def prior(self) -> float:
+        """The population's probability (-) that a driver yields: the mean of the world's drivers' eta_coop, each
+        driver's latched decision being drawn Bernoulli(eta_coop) (data.scenarios; scenario.cooperation sets them);
+        one UserError for a world without such drivers (highway-env's)."""
+        if not isinstance(self.world, World):
+            raise UserError("predictor.knows=prior reads the drivers' willingness to yield (eta_coop), which only "
+                            "data.world.World has; use knows=all")
+        return float(np.mean([d.eta_coop for d in self.world.drivers]))
+
+    def belief(self) -> np.ndarray:
+        """p(yields) (SLOTS,) of the observed slots, the ego's 0: its decision for a driver whose decision shows
+        (World.decided: 1 seen yielding, 0 seen refusing), the population's prior for every other one (knows=prior)."""
+        p = self.known(self.prior())[self.ids]
+        p[0] = 0.0
+        return p
+
+    def known(self, otherwise) -> np.ndarray:
+        """(M,) each driver's decision where it shows (World.decided), `otherwise` elsewhere."""
+        return np.where(self.world.decided(), self.world.decisions(), otherwise)
+
+    def start(self, hyp=None):
+        """A copy of the running world to drive on: its own decisions (all), those shown (seen), or (prior) the
+        observed slots' taken from the hypotheses hyp (SLOTS,) (None: the more probable of each, belief > 0.5) and
+        every unobserved driver's as it shows (World.decided), else the more probable one."""
+        if self.knows == "all":
+            return self.world.copy()
+        if self.knows == "seen":
+            return self.world.with_decisions(self.world.seen_decisions())
+        decided = self.known(self.prior() > 0.5)
+        decided[self.ids] = self.belief() > 0.5 if hyp is None else np.asarray(hyp) > 0.5
+        return self.world.with_decisions(decided)
+
+    def split(self, group, hyp) -> list:
+        """[(world, members)]: a group of rollouts (a world, its members' indices) split by their hypotheses hyp (B, SLOTS)
+        once a driver they differ on responds to the ego this step (World.respond: its perceived encroachment or its
+        response above 0), each part's world a copy with its own; until then a decision to yield changes nothing
+        (World.acceleration), so all step one world alike."""
+        w, members = group
+        differ = self.ids[np.flatnonzero((hyp[members] != hyp[members[0]]).any(0))]
+        seen = lambda j: w.seen[w.perceived(j)]
+        if not any(w.response[j] > 0 or w.encroachment(j, seen(j), int(w.road.lane_of(seen(j)[0, 1]))) > 0 for j in differ):
+            return [group]
+        parts = {}
+        for b in members:
+            parts.setdefault(hyp[b].tobytes(), []).append(b)
+        out = []
+        for part in parts.values():
+            v = w.copy()
+            v.will_yield[self.ids[1:]] = hyp[part[0], 1:] > 0.5
+            out.append((v, part))
+        return out
+
+    def react(self, history, ego_next, T, B, yielding=None, hyp=None):
         """Every car's xy (B, T, SLOTS, 2) (m) over T steps in B copies of the running world while B feedback policies
         drive the ego: ego_next(window (B, T_obs, SLOTS, 2), tau) -> its xy (B, 2) at step tau + 1, with the heading and
-        speed of each step's displacement; history (T_obs, SLOTS, 2) the observed window; a bool array `yielding`
-        (B, T, SLOTS) is filled with the drivers' hidden yielding flags (bench.candidates' dataset labels)."""
+        speed of each step's displacement; history (T_obs, SLOTS, 2) the observed window; hyp (B, SLOTS): each
+        rollout's hypotheses (knows=prior; None: the more probable); a bool array `yielding` (B, T, SLOTS) is filled
+        with the drivers' hidden yielding flags (bench.candidates' dataset labels)."""
         if self.world is None:
             raise UserError("predictor=oracle reads the running world: only the planner's closed loop with "
                             "world=reactive can use it")
         dt = self.world.params.dt
         window = np.repeat(np.asarray(history, dtype=float)[None], B, 0)
         out = np.empty((B, T, len(self.ids), 2))
-        groups = [(self.world.copy(), list(range(B)))]  # one world per ego path driven so far: plans that share a prefix share its steps
+        hyp = None if hyp is None else np.asarray(hyp, dtype=float)
+        groups = [(self.start(None if hyp is None else hyp[0]), list(range(B)))]  # one world per ego path driven so
+        # far (plans that share a prefix share its steps) and, once they matter, per hypothesis (split)
         for k in range(T):
+            if hyp is not None:
+                groups = [part for group in groups for part in self.split(group, hyp)]
             xy = ego_next(window, k)
             split = []
             for w, members in groups:
@@ -235,14 +313,97 @@ class WorldModel:
         return out
 
 
-class WorldOracle(CentralDifferences):
+class Given:
+    """A source with hypotheses of yielding: given(hyp) is the same source with each rollout under its own."""
+
+    hyp = None  # (B, SLOTS): each of B rollouts' hypotheses, 1: the car yields (given); None: the more probable of each
+
+    def given(self, hyp):
+        """This source with each of B rollouts under its hypotheses hyp (B, SLOTS) (1: the car yields)."""
+        out = copy.copy(self)
+        out.hyp = np.asarray(hyp, dtype=float)
+        return out
+
+
+class WorldOracle(Given, CentralDifferences):
     """gradients=oracle: the WorldModel's futures, derivatives by central differences of them (step h, m)."""
 
     needs_world = True
 
+    @property
+    def hypotheses(self) -> bool:
+        """Whether it gives hypotheses with their probabilities (knows=prior)."""
+        return self.predictor.knows == "prior"
+
+    def belief(self, history):
+        """p(yields) (SLOTS,) of each observed car, the ego's 0 (WorldModel.belief; the history is the world's own)."""
+        return self.predictor.belief()
+
     def react(self, history, ego_next, T, B):
         """Every car's xy (B, T, SLOTS, 2) while B feedback policies drive the ego, in copies of the running world."""
-        return self.predictor.react(history, ego_next, T, B)
+        return self.predictor.react(history, ego_next, T, B, hyp=self.hyp)
+
+
+class Hypotheses(Given, ExactLocal):
+    """gradients=student_hyp | teacher_hyp: a hypothesis predictor (distill.models.HypothesisPredictor): its belief
+    per car, every rollout under its own hypotheses of yielding (given: the contingency step's branches) and the step's
+    plan (ADMM, the safeguard) under the history's most probable ones (at), with the exact local Jacobians under them.
+    The student's rollouts run compiled, one call per distinct hypothesis: a fixed hypothesis is a GeluStudent whose
+    first bias it shifts (HypothesisStudent.fixed)."""
+
+    hypotheses = True
+
+    def __init__(self, name, predictor):
+        super().__init__(name, predictor)
+        self.network, self.under = predictor, {}  # under: {hypotheses' bytes: the predictor under them}, made once
+
+    def fixed(self, hyp):
+        """The predictor under hypotheses hyp (SLOTS,) (> 0.5: the car yields)."""
+        h = (np.asarray(hyp) > 0.5).astype(float)
+        key = h.tobytes()
+        if key not in self.under:
+            self.under[key] = self.network.given(h)
+        return self.under[key]
+
+    def belief(self, history):
+        """p(yields) (SLOTS,) of each observed car given the history (T_obs, SLOTS, 2), the ego's 0: the network's."""
+        return self.network.belief(np.asarray(history, float)[None])[0]
+
+    def at(self, history):
+        """This source for one step: its plain rollout under the history's most probable hypotheses (belief > 0.5)."""
+        return self.plain(self.fixed(self.belief(history) > 0.5))
+
+    def plain(self, predictor):
+        """This source with one predictor for every rollout."""
+        out = copy.copy(self)
+        out.predictor, out.hyp = predictor, None
+        return out
+
+    def parts(self):
+        """[(this source under one hypothesis, the rollouts (indices) given it)] of each distinct row of hyp."""
+        kinds, which = np.unique(self.hyp > 0.5, axis=0, return_inverse=True)
+        return [(self.plain(self.fixed(h)), np.flatnonzero(which == k)) for k, h in enumerate(kinds)]
+
+    def values(self, history, ego_futures):
+        """Source.values, each rollout under its own hypotheses (given) where they are given."""
+        if self.hyp is None:
+            return super().values(history, ego_futures)
+        ego_futures = np.asarray(ego_futures, dtype=float)
+        out = np.empty((len(ego_futures), ego_futures.shape[1], *np.shape(history)[1:]))
+        for part, b in self.parts():
+            out[b] = part.values(history, ego_futures[b])
+        return out
+
+    def drive(self, history, policy, T: int):
+        """Source.drive, each policy under its own hypotheses (given) where they are given."""
+        if self.hyp is None:
+            return super().drive(history, policy, T)
+        K = len(policy.z)
+        out = [np.empty((K, T)), np.empty((K, T)), np.empty((K, 4 * T)), np.empty((K, T, *np.shape(history)[1:]))]
+        for part, b in self.parts():
+            for whole, piece in zip(out, part.drive(history, policy.rows(b), T)):
+                whole[b] = piece
+        return tuple(out)
 
 
 class Recording:
@@ -257,6 +418,12 @@ class Recording:
 
     def __getattr__(self, name):
         return getattr(self.source, name)
+
+    def at(self, history):
+        """The wrapped source as the step plans with it, its linearisations kept here."""
+        out = Recording(self.source.at(history))  # not copy.copy: __getattr__ would recurse on the bare copy
+        out.histories, out.plans = self.histories, self.plans
+        return out
 
     def local_jacobians(self):
         """None: every linearisation goes through `jacobian`, which keeps it."""

@@ -1,6 +1,6 @@
 """The planner as a gymnasium policy for highway-env's dense merge (data.highway, `admm-nnmpc/DenseMerge-v0`).
 
-    env = gymnasium.make("admm-nnmpc/DenseMerge-v0")
+    env = gymnasium.make("data.highway:admm-nnmpc/DenseMerge-v0")  # the module registers the id
     policy = MergePolicy(["gradients=student", "method=admm"])
     obs, info = env.reset(seed=2000000)
     policy.reset()
@@ -17,12 +17,14 @@ seen). The frame and action mapping is data.highway's (to_ours, to_action), nowh
 import numpy as np
 
 from core import validate
-from core.jobs import UserError, build
+from core.jobs import UserError, build, check_overrides
 from data.highway import ENV_ID, DenseMergeEnv, to_action, to_ours
 from data.perception import slot_ids
 from data.world import backfill
 from planner.mpc import Observation
 from planner.setup import planner_config, setup
+
+JUMP_M = 2.0  # m: how far a car may be from where its speeds put it one step later (a new episode moves them tens of m)
 
 
 class MergePolicy:
@@ -30,9 +32,13 @@ class MergePolicy:
     unless given), `action` the env's action config (its ranges; the env's default if None)."""
 
     def __init__(self, overrides=(), action=None):
+        if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
+            raise UserError(f"MergePolicy: overrides={overrides!r}: a list of `planner` overrides, such as ['gradients=cv']")
         overrides = list(overrides)
         scenario = next((o.split("=", 1)[1] for o in overrides if o.startswith("scenario=")), "highway")
-        cfg = planner_config(scenario, [o for o in overrides if not o.startswith("scenario=")])
+        rest = [o for o in overrides if not o.startswith("scenario=")]
+        check_overrides("planner", [f"scenario={scenario}", *rest])  # one line for an unknown key or option, as `planner`
+        cfg = planner_config(scenario, rest)
         validate.check(cfg, "planner")  # the checks the `planner` command makes
         methods = list(cfg.method)
         if len(methods) != 1:
@@ -44,12 +50,12 @@ class MergePolicy:
         self.T_obs, self.n_slots, self.dt = cfg.T_obs, cfg.n_slots, self.scenario.params.dt
         action = action or DenseMergeEnv.default_config()["action"]
         self.ranges = action["acceleration_range"], action["steering_range"]
-        self.pasts = None
+        self.pasts = self.seen = None
         self.last = None  # the last planning step's result (fallback reason, cost, iterations)
 
     def reset(self):
         """Forget the last episode: histories, the last control and the warm start."""
-        self.pasts, self.u_prev, self.warm = {}, np.zeros(2), None
+        self.pasts, self.seen, self.u_prev, self.warm = {}, {}, np.zeros(2), None
 
     def observe(self, observation) -> Observation:
         """The planner's Observation from an env observation (rows [present, id, x, y, heading, speed])."""
@@ -63,9 +69,16 @@ class MergePolicy:
             raise UserError(f"MergePolicy: an observation is rows [present, id, x, y, heading, speed] of finite numbers "
                             f"({ENV_ID}'s), not {np.shape(observation)}")
         rows = rows[rows[:, 0] > 0.5]
+        if (rows[:, 1] != np.round(rows[:, 1])).any() or (rows[:, 1] < 0).any():
+            bad = sorted(float(i) for i in rows[:, 1] if i != round(i) or i < 0)
+            raise UserError(f"MergePolicy: car ids are whole numbers >= 0, not {bad}")
         ids, z = rows[:, 1].astype(int), to_ours(rows[:, 2:6])
         if len(ids) == 0 or ids[0] != 0:
             raise UserError("MergePolicy: the observation holds no ego row (id 0 first)")
+        if len(set(ids)) < len(ids):
+            twice = sorted({int(i) for i in ids if list(ids).count(i) > 1})
+            raise UserError(f"MergePolicy: car ids {twice} appear twice in one observation")
+        self.check_continuity(ids, z)
         for i, zi in zip(ids, z):
             past = self.pasts.get(i)
             self.pasts[i] = (list(backfill(zi[None], self.T_obs, self.dt)[:, 0]) if past is None else past + [zi[:2]])[-self.T_obs:]
@@ -78,6 +91,21 @@ class MergePolicy:
         slots = slot_ids(z, self.n_slots)
         history = np.stack([pasts[k] for k in slots], axis=1)
         return Observation(z[0].copy(), self.u_prev.copy(), history)
+
+    def check_continuity(self, ids, z):
+        """One UserError where the ego, or most of the other cars seen last time, moved further since the last observation
+        than their speeds allow in one step of dt: a new episode without reset() (or a step not shown to the policy) would
+        mix the histories of two worlds."""
+        def jumped(i):  # distance against the mean speed's, with room for a step's hardest braking and yaw
+            (xy0, v0), xy1, v1 = self.seen[i], z[k[i], :2], z[k[i], 3]
+            return abs(np.linalg.norm(xy1 - xy0) - 0.5 * (v0 + v1) * self.dt) > JUMP_M
+        k = {i: n for n, i in enumerate(ids)}
+        both = [i for i in ids if i in self.seen]
+        others = [i for i in both if i != 0]
+        if (0 in both and jumped(0)) or (others and sum(map(jumped, others)) > len(others) / 2):
+            raise UserError("MergePolicy: the cars moved further than their speeds allow since the last observation: "
+                            "call reset() at the start of every episode, and the policy on every step")
+        self.seen = {i: (z[n, :2].copy(), z[n, 3]) for n, i in enumerate(ids)}
 
     def __call__(self, observation) -> np.ndarray:
         """The env's action [acceleration, steering] in [-1, 1] for this observation."""

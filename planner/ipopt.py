@@ -152,9 +152,10 @@ def ipopt_step(s: mpc.Settings, obs: mpc.Observation, source, warm, options: dic
         return safeguard.fallback(s, obs, source, warm, f"IPOPT: {stats['return_status']}")
     x, g = np.asarray(sol["x"]).ravel(), np.asarray(sol["g"]).ravel()
     Delta, alpha, Z = x[:s.T_p], x[s.T_p:2 * s.T_p], x[2 * s.T_p:]
-    b_min = min(safeguard.plan_safe(s, obs, source, Delta, alpha)[0], float(g[T4:].min(initial=np.inf)))
-    if not safeguard.acceptable(s, obs, source, b_min):
-        return safeguard.fallback(s, obs, source, warm, f"unsafe plan (min b_i {b_min:.2f} m^2)")
+    checked, rolled = safeguard.plan_safe(s, obs, source, Delta, alpha)
+    b_min = min(checked, float(g[T4:].min(initial=np.inf)))
+    if not safeguard.acceptable(s, b_min, rolled):
+        return safeguard.fallback(s, obs, source, warm, f"unsafe plan ({safeguard.why_not(s, b_min, rolled)})")
     plan = admm.ADMMState(Delta, alpha, Z, np.asarray(sol["lam_g"]).ravel()[:T4])  # lam_g of F = 0 plays ADMM's mu
     return mpc.StepResult(u=np.array([Delta[0], alpha[0]]), plan=plan, J=mpc.J_of(s, obs.u_prev, Delta, alpha, Z),
                           iters=int(stats["iter_count"]), reason=stats["return_status"],

@@ -7,9 +7,12 @@ data.bicycle.step stays the world's and the reference: the arithmetic is the sam
 atan, tan, sin and cos may differ from numpy's SIMD loops in the last bit, so the numbers agree to rounding
 (tests/test_multistart.py)."""
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+
+from data.world import Steering, steer
 
 
 @njit(cache=True)
@@ -38,22 +41,39 @@ def simulate(z0, Delta, alpha, l_f, l_r, dt):
     return Z
 
 
+class Car(NamedTuple):
+    """A planned ego as drive moves it: axles l_f, l_r (m) from the centre of mass, step dt (s), the acceleration box
+    a_box (lo, hi) in m/s^2 and its steering law (data.world.Steering)."""
+
+    l_f: float
+    l_r: float
+    dt: float
+    a_box: tuple
+    law: Steering
+
+
 @njit(cache=True)
-def lane_plans(z0, lane_y, accels, H, l_f, l_r, dt, delta_lo, delta_hi, k_y, k_psi, delta_max):
+def drive(z, y_target, a, car):
+    """One ego in state z (4,) (x, y m, psi rad, v m/s) one step on, written into z, steering to y_target (m) by its
+    car's law and accelerating at a (m/s^2) within the box, never into reverse: its controls delta (rad), a (m/s^2)."""
+    d = steer(z[1], z[2], z[3], y_target, car.l_f + car.l_r, car.law)
+    a = max(min(max(a, car.a_box[0]), car.a_box[1]), -z[3] / car.dt)
+    advance(z, d, a, car.l_f, car.l_r, car.dt)
+    return d, a
+
+
+@njit(cache=True)
+def lane_plans(z0, lane_y, accels, H, car):
     """planner.mpc.lane_plans' plans from z0 (4,): Delta, alpha (n, H) and Z (n, 4H) of n plans steering to lane_y (m)
-    by data.world.steer_to's law (gains k_y, k_psi; |delta| <= delta_max rad, then the box delta_lo..delta_hi) at the
-    accelerations accels (n,) (m/s^2, already in the box), never below the stop -v/dt."""
+    by the car's law at the accelerations accels (n,) (m/s^2, already in the box), never below the stop -v/dt."""
     n = len(accels)
     Delta, alpha, Z = np.empty((n, H)), np.empty((n, H)), np.empty((n, 4 * H))
     for k in range(n):
         z = z0.copy()
         for t in range(H):
-            v = max(z[3], 1.0)
-            psi_d = math.atan(k_y * (lane_y - z[1]) / v)
-            d = min(max((l_f + l_r) * k_psi * (psi_d - z[2]) / v, -delta_max), delta_max)
-            Delta[k, t] = d = min(max(d, delta_lo), delta_hi)
-            stop = -z[3] / dt
+            Delta[k, t] = d = steer(z[1], z[2], z[3], lane_y, car.l_f + car.l_r, car.law)
+            stop = -z[3] / car.dt
             alpha[k, t] = a = stop if stop > accels[k] else accels[k]
-            advance(z, d, a, l_f, l_r, dt)
+            advance(z, d, a, car.l_f, car.l_r, car.dt)
             Z[k, 4 * t:4 * t + 4] = z
     return Delta, alpha, Z

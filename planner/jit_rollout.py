@@ -1,18 +1,14 @@
 """Compiled (numba) Remark-2 rollout with its exact chain rule for the predictors the compiled core runs itself (constant
 velocity and the GELU student from its float64 weights), and b_i with its Jacobian about a linearisation; the layouts of
 core.rollout (metres throughout), which stays the tested reference."""
-import math
 from functools import lru_cache
-from weakref import WeakKeyDictionary
 
 import numpy as np
 from numba import njit
-from numba.typed import List
 
+from core.jit_linalg import matmul, matvec
 from core.rollout import rollout_jacobian
-from planner import safety
-from planner.jit_interactive import open_loop
-from planner.jit_linalg import matmul, matvec
+from distill.student import cv_phi_jac, phi_jac, typed
 
 
 @njit(cache=True)
@@ -49,53 +45,6 @@ def step_window(window, nxt, ego):
 
 
 @njit(cache=True)
-def cv_phi_jac(window):
-    """Constant velocity: next xy (SLOTS, 2) and its local Jacobian (SLOTS*2, T_obs*SLOTS*2)."""
-    T_obs, M, _ = window.shape
-    J = np.zeros((2 * M, T_obs * 2 * M))
-    for r in range(2 * M):
-        J[r, (T_obs - 1) * 2 * M + r] = 2.0
-        J[r, (T_obs - 2) * 2 * M + r] = -1.0
-    return 2.0 * window[-1] - window[-2], J
-
-
-@njit(cache=True)
-def gelu(a):
-    """Exact (erf) GELU and its derivative, elementwise."""
-    h, dh = np.empty_like(a), np.empty_like(a)
-    for i in range(len(a)):
-        cdf = 0.5 * (1.0 + math.erf(a[i] / math.sqrt(2.0)))
-        h[i] = a[i] * cdf
-        dh[i] = cdf + a[i] * math.exp(-0.5 * a[i] * a[i]) / math.sqrt(2.0 * math.pi)
-    return h, dh
-
-
-@njit(cache=True)
-def student_phi_jac(Ws, bs, s, window):
-    """The GELU student (distill.student) from its float64 weights (typed lists of the layers' W and b, P folded into the
-    first W): next xy (SLOTS, 2) and its exact local Jacobian (SLOTS*2, T_obs*SLOTS*2), the others' rows by one
-    reverse sweep for all 2N outputs."""
-    T_obs, M, _ = window.shape
-    h = window.reshape(-1).copy()
-    dhs = []
-    for k in range(len(Ws) - 1):
-        h, dh = gelu(matvec(Ws[k], h) + bs[k])
-        dhs.append(dh)
-    t = np.tanh(matvec(Ws[-1], h) + bs[-1])
-    nxt, J = cv_phi_jac(window)
-    G = Ws[-1].copy()  # becomes d head / d hidden, layer by layer back to d head / d window: (2N, width)
-    for r in range(len(t)):
-        nxt[1 + r // 2, r % 2] += s[r] * t[r]
-        G[r] *= s[r] * (1.0 - t[r] * t[r])
-    for k in range(len(Ws) - 2, -1, -1):
-        G = (G * dhs[k]) @ Ws[k]  # dhs[k] (width,) scales G's columns; BLAS: the hot product, worth its compile time
-    for r in range(G.shape[0]):
-        for c in range(G.shape[1]):
-            J[r + 2, c] += G[r, c]
-    return nxt, J
-
-
-@njit(cache=True)
 def keep(Js, values, tau, J, window):
     """Store step tau's local Jacobian J and its window's last step (the rollout's values at tau)."""
     for r in range(J.shape[0]):
@@ -126,7 +75,7 @@ def student_rollout(Ws, bs, s, history, ego):
     T_obs, M, _ = history.shape
     values, Js, window = np.empty((T_p, M, 2)), np.empty((T_p, 2 * M, T_obs * 2 * M)), history
     for tau in range(T_p):
-        nxt, J = student_phi_jac(Ws, bs, s, window)
+        nxt, J = phi_jac(Ws, bs, s, window)
         window = step_window(window, nxt, ego[tau])
         keep(Js, values, tau, J, window)
     return values, chain_rule(Js, T_obs)
@@ -141,32 +90,14 @@ def predicted(Ws, bs, s, history, ego):
     return student_rollout(Ws, bs, s, history, ego)
 
 
-def typed(arrays) -> List:
-    """A numba typed list of float64 arrays: one numba type whatever its length, so cv's placeholders and every student
-    depth share one compilation of the kernels that take them (a tuple's type would fix its length)."""
-    out = List()
-    for a in arrays:
-        out.append(np.ascontiguousarray(a, float))
-    return out
-
-
 @lru_cache(maxsize=1)
 def cv_params():
     """`predicted`'s placeholders for constant velocity: one 1 x 1 layer, no head scale."""
     return typed([np.zeros((1, 1))]), typed([np.zeros(1)]), np.zeros(0)
 
 
-def student_params(predictor):
-    """`predicted`'s (Ws, bs, s) of a StudentPredictor from its float64 weights, built once per student (typed lists are
-    slow to build from Python)."""
-    if predictor not in _student_params:
-        _student_params[predictor] = (typed(W for W, _ in predictor.weights), typed(b for _, b in predictor.weights),
-                                      np.ascontiguousarray(predictor.s))
-    return _student_params[predictor]
-
-
-_student_params = WeakKeyDictionary()  # student_params of each live StudentPredictor
-KERNELS = {"cv": lambda predictor: cv_params(), "student": student_params}  # `predicted`'s weights per compiled predictor
+KERNELS = {"cv": lambda predictor: cv_params(), "student": lambda predictor: predictor.kernel,
+           "student_hyp": lambda predictor: predictor.kernel}  # `predicted`'s weights per compiled predictor
 
 
 def compiled_params(source):
@@ -182,15 +113,6 @@ def values_params(predictor):
     return KERNELS[name](predictor) if name in KERNELS else None
 
 
-def jit_values(predictor):
-    """values(history (T_obs, SLOTS, 2), egos (B, T, 2)) -> the rollout values (B, T, SLOTS, 2) m of B fixed ego plans in
-    one compiled call (jit_interactive.open_loop), for the predictors of values_params; None for the others."""
-    params = values_params(predictor)
-    if params is None:
-        return None
-    return lambda history, egos: open_loop(*params, np.ascontiguousarray(history, float), np.ascontiguousarray(egos, float))
-
-
 def compiled_jacobian(source):
     """jacobian(history, ego) -> (values, d values / d ego) compiled for the sources of compiled_params; None for the
     others, whose own `jacobian` the compiled core calls."""
@@ -201,9 +123,10 @@ def compiled_jacobian(source):
 
 
 def values(source, history, ego):
-    """planner.safety.values, by the compiled rollout for a source that runs compiled (values and J in ~0.1 ms)."""
+    """The predictor's rollout values (T_p, SLOTS, 2) under one ego plan's xy (T_p, 2): by the compiled rollout for a
+    source that runs compiled (values and J in ~0.1 ms), else from the source's own rollout."""
     compiled = compiled_jacobian(source)
-    return compiled(history, ego)[0] if compiled else safety.values(source, history, ego)
+    return compiled(history, ego)[0] if compiled else source.values(history, ego[None])[0]
 
 
 def compiled_chain(source):
@@ -228,8 +151,7 @@ def rows_affine(Z, ego0, values0, grads, R, stretch, p, x_obs, dt, b_c, courtesy
     """The Safety's rows at the plan Z (4T_p,) and their d / d Z (rows, 4T_p), with the others' rollout values affine
     about a linearisation (ego0, values0 (T_p, SLOTS, 2), grads (T_p, SLOTS, 2, T_p, 2)), the ego slot moving exactly
     with Z: b_i (N*T_p, m^2; core.rollout.b_i's shape: R m, stretch, p), then with `courtesy` c_i = a_i + b_c (N*T_p, m/s^2; x_obs (2, SLOTS): the last two
-    observed x, dt s). As core.rollout.b_i_jacobian and courtesy_jacobian of planner.safety.Safety.reused, causal
-    blocks only."""
+    observed x, dt s). As core.rollout.b_i_jacobian and courtesy_jacobian, causal blocks only."""
     T_p, M = values0.shape[0], values0.shape[1]
     N = M - 1
     n_b = N * T_p

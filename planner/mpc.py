@@ -1,72 +1,43 @@
-"""The MPC step's problem: its settings (eq. (5)-(8); Algorithm 1's, the safeguard's and the strategy's nodes), what the planner sees, what
+"""The MPC step's problem: its settings (eq. (5)-(8); Algorithm 1's and the strategy's nodes), what the planner sees, what
 a step returns, and the paper's maths about one observation: the costs, boxes, linearisation and ADMM's set-up.
 
 How a step runs (candidate starts -> ADMM -> safeguard -> choose) is planner.step; the safeguard (check, repair,
 fallback) planner.safeguard; which plans to start from and how to choose among them, planner.strategy.
 """
-from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from core.jobs import UserError
 from core.rollout import b_i
-from core.validate import Bool, Int, OneOf, Range, Real, check_fields, rule
+from core.validate import HORIZON, Int, OneOf, Range, Real, check_fields, rule
 from data import bicycle
-from data.world import Road, steer_to
-from planner import admm, cost, dynamics, jit_admm, jit_bicycle, jit_rollout, jit_zstep, safety
-from planner.jit_zstep import CompiledSafety
+from data.world import Road, Steering
+from planner import admm, cost, dynamics, jit_bicycle
 from planner.safety import Safety
 
 POS, NONNEG, PAIR = Real(0, lo_open=True), Real(0), Range(strict=True)
 
-
-@dataclass(frozen=True)
-class Safeguard:
-    """The safeguard's settings (planner.safeguard: the check of a solved plan, its repair, the fallback), the
-    `mpc.safeguard` node; each value checked here, one UserError naming the key."""
-
-    check_tol: float = rule(NONNEG)  # b_i violation (m^2) tolerated in the plan and in the nonlinear rollout of its controls
-    check_steps: int = rule(Int(0))  # steps of that rollout checked: only its start is ever applied, the rest is replanned
-    check_relative: bool = rule(Bool())  # also accept a plan no less safe than braking in lane (safeguard.acceptable)
-    repair_iters: int = rule(Int(0))  # repair steps (planner.repair) for a plan that fails the check; 0: none, the paper
-    repair_margin: float = rule(NONNEG)  # b_i (m^2) a repair step aims for on the linearised rollout
-    brake: float = rule(Real(hi=0, hi_open=True))  # deceleration of the braking-in-lane fallback (m/s^2)
-
-    def __post_init__(self):
-        check_fields(self, "mpc.safeguard")
-
-
-class Core(NamedTuple):
-    """How a step's maths runs (mpc.admm.core), chosen once when its Settings are built: the Safety class, the Z-step
-    this core runs for a conf/zstep/ class, the ADMM solve, and the predictor's values under a plan (the safeguard's
-    check)."""
-
-    safety: type
-    zstep: Callable
-    solve: Callable
-    values: Callable  # (source, history (T_obs, SLOTS, 2), ego xy (T_p, 2)) -> values (T_p, SLOTS, 2)
-
-
-CORES = {"reference": Core(Safety, lambda zstep: zstep, admm.admm_solve, safety.values),
-         "compiled": Core(CompiledSafety, jit_zstep.compiled, jit_admm.admm_solve, jit_rollout.values)}
+BRAKE = -3.0  # m/s^2: deceleration of the safeguard's braking-in-lane fallback (planner.safeguard.fallback)
 
 
 @dataclass(frozen=True)
 class Settings:
-    """One step's settings in SI units, data only, built from the `planner` config's `mpc` node (its YAML is the one home of
-    every value; planner.setup passes the scenario's y_ref, v_ref, road and params): the problem, eq. (5)-(8) about one
-    observation, here; the solver (`admm`), the safeguard and the strategy in their own nodes. Each value is checked
-    where it is defined, one UserError naming the key."""
+    """One step's settings in SI units, data only, built from the `planner` config's `mpc` node (planner.setup adds the
+    paper's weights, the planner's linearize and the scenario's y_ref, v_ref, merge_tol, road and params): the problem, eq. (5)-(8)
+    about one observation, and the safeguard's repair here; the solver (`admm`) and the strategy in their own nodes.
+    Each value is checked where it is defined, one UserError naming the key."""
 
     name: str  # the conf/mpc/ option (MLflow param `mpc`): paper | courteous | ...
     weights: cost.Weights
     y_ref: float  # m: the target lane's centre; a refined candidate's aim may be its own path instead, a tuple of T_p (Phi_3)
     v_ref: float  # m/s; likewise
+    lane_y: float  # m: the target lane's centre, the scenario's y_ref, which no candidate's aim replaces
+    merge_tol: float  # m: merged once the ego's centre is this close to lane_y (the scenario's)
     road: Road
     params: bicycle.BicycleParams
-    T_p: int = rule(Int(1))  # prediction horizon (steps of dt)
+    T_p: int = rule(HORIZON)  # prediction horizon (steps of dt), at most core.validate.MAX_T_P: a step's time grows as T_p^3
     r: float = rule(POS)  # ego's safety radius (m)
     r_i: float = rule(POS)  # the others' safety radius (m)
     eps: float = rule(NONNEG)  # safety margin (m)
@@ -79,13 +50,11 @@ class Settings:
     v_box: tuple = rule(PAIR)  # m/s
     y_margin: float = rule(NONNEG)  # how far the ego's centre may leave the outer lane centres (m)
     linearize: str = rule(OneOf(("last_observed", "along_plan")))
-    admm: admm.Settings  # the solver: Algorithm 1's penalty, core, stopping and OSQP settings
-    safeguard: Safeguard  # the check, repair and fallback every solver's plan passes
+    repair_iters: int = rule(Int(0))  # repair steps (planner.repair) for a plan that fails the safeguard's check; 0: none, the paper
+    admm: admm.Settings  # the solver: Algorithm 1's penalty and stopping
     strategy: Any  # which plans to solve from and which to apply (planner.strategy)
-    core: Core = field(init=False, repr=False, compare=False)  # admm.core's implementation
 
     def __post_init__(self):
-        object.__setattr__(self, "core", CORES[self.admm.core])
         check_fields(self, "mpc")
         check_shape(self)
 
@@ -179,23 +148,33 @@ def lane_plan(s: Settings, z0, a):
     return Delta[0], alpha[0]
 
 
+def wholly_in(road: Road, y, lane_y: float) -> bool:
+    """Whether a car whose centre is at lateral position y (m) lies wholly inside the lane centred at lane_y (m)."""
+    return abs(float(y) - lane_y) <= (road.lane_width - road.car_width) / 2
+
+
 def lane_plans(s: Settings, z0, accels):
     """lane_plan for each acceleration of accels (n,) (m/s^2), rolled out together, with the rollouts: Delta, alpha
-    (n, T_p) and Z (n, 4T_p) as simulate's, each plan as alone (compiled: planner.jit_bicycle.lane_plans, by
-    data.world.steer_to's law and gains)."""
+    (n, T_p) and Z (n, 4T_p) as simulate's, each plan as alone (planner.jit_bicycle.lane_plans, by the world drivers'
+    steering law)."""
     z = np.asarray(z0, float)
     lane_y = s.road.centre(s.road.lane_of(z[1]))
-    if abs(z[1] - lane_y) > (s.road.lane_width - s.road.car_width) / 2:  # straddling: abort, back away from y_ref
+    if not wholly_in(s.road, z[1], lane_y):  # straddling: abort, back away from y_ref
         lane_y = s.road.centre(s.road.lane_of(z[1] - np.sign(s.y_ref - z[1]) * s.road.lane_width / 2))
     a = np.clip(np.asarray(accels, float), *s.a_box)
-    p = s.params
-    return jit_bicycle.lane_plans(z, float(lane_y), np.ascontiguousarray(a, float), s.T_p, p.l_f, p.l_r, p.dt,
-                                  *map(float, s.delta_box), *steer_to.__defaults__)
+    return jit_bicycle.lane_plans(z, float(lane_y), np.ascontiguousarray(a, float), s.T_p, car(s, Steering()))
+
+
+def car(s: Settings, law: Steering) -> jit_bicycle.Car:
+    """The planned ego as jit_bicycle.drive moves it: the scenario's bicycle, a_box, and `law` within delta_box."""
+    p, (lo, hi) = s.params, s.delta_box
+    law = Steering(*map(float, law[:4]), max(float(law.delta_lo), float(lo)), min(float(law.delta_hi), float(hi)))
+    return jit_bicycle.Car(float(p.l_f), float(p.l_r), float(p.dt), (float(s.a_box[0]), float(s.a_box[1])), law)
 
 
 def brake_plan(s: Settings, z0):
-    """Controls Delta, alpha (T_p,) that hold the current lane (lane_plan) braking at s.safeguard.brake to a stop."""
-    return lane_plan(s, z0, s.safeguard.brake)
+    """Controls Delta, alpha (T_p,) that hold the current lane (lane_plan) braking at BRAKE to a stop."""
+    return lane_plan(s, z0, BRAKE)
 
 
 def planned(s: Settings, z0, Delta, alpha, Z=None) -> admm.ADMMState:
@@ -224,9 +203,11 @@ def linearization(s: Settings, obs: Observation, start: admm.ADMMState):
     return dynamics.linearize(np.asarray(obs.z0, float), obs.u_prev[0], obs.u_prev[1], s.params, s.T_p, plan)
 
 
-def courtesy(s: Settings):
-    """The Safety's courtesy argument: (dt s, b_c m/s^2), or None without courtesy rows."""
-    return None if s.b_courtesy is None else (s.params.dt, float(s.b_courtesy))
+def courtesy(s: Settings, z0):
+    """The Safety's courtesy argument: (dt s, b_c m/s^2), or None without courtesy rows or once the ego at z0 is wholly
+    inside the target lane: there a car behind it braking for it can only be helped by leaving the lane, which the
+    safety shape does not cover (issue 74: a plan steered out of the lane to -0.64 rad and was hit)."""
+    return None if s.b_courtesy is None or wholly_in(s.road, z0[1], s.lane_y) else (s.params.dt, float(s.b_courtesy))
 
 
 def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zstep, start: admm.ADMMState = None,
@@ -239,11 +220,11 @@ def build(s: Settings, obs: Observation, source, warm: admm.ADMMState | None, zs
         lo, hi = state_box(s)
         prob = admm.Problem(linearization(s, obs, start), *costs(s, obs.u_prev), float(s.admm.rho), tuple(s.delta_box),
                             tuple(s.a_box), lo, hi)
-        safety = s.core.safety(source, obs.history, s.R, s.T_p, courtesy(s), s.stretch, s.shape)
-        solvers = admm.solvers(prob, s.core.zstep(zstep), safety, s.admm.osqp)
+        safety = Safety(source, obs.history, s.R, s.T_p, courtesy(s, obs.z0), s.stretch, s.shape)
+        solvers = admm.solvers(prob, zstep, safety)
     else:
         prob = like[0]._replace(Phi_3=cost.Phi_3(s.T_p, s.weights, s.y_ref, s.v_ref))
-        solvers = like[1]._replace(zstep=s.core.zstep(zstep)(prob, like[1].zstep.safety, s.admm.osqp))
+        solvers = like[1]._replace(zstep=zstep(prob, like[1].zstep.safety))
     return prob, solvers, start._replace(Z=np.clip(start.Z, prob.z_lo, prob.z_hi))
 
 

@@ -140,14 +140,27 @@ def autodiff_b(safety, source):
     return b
 
 
+class PyGransoInfo(NamedTuple):
+    """How a PyGranso Z-update ended: its termination code and reason, iterations, function evaluations, the largest
+    violation (m^2), whether that counts as infeasible, min b_i (m^2); lin_offset 0: no linearisation to restart."""
+
+    termination: int
+    termination_reason: str
+    pygranso_iters: int
+    fn_evals: int
+    slack: float
+    infeasible: bool
+    b_min: float
+    lin_offset: float = 0.0
+
+
 class PyGransoZStep:
     """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. -b_i(Z) <= 0 and the box, by PyGranso's BFGS-SQP."""
 
     name = "pygranso"
 
-    def __init__(self, prob, safety, osqp_settings, settings: PyGransoSettings):
-        """prob: the step's planner.admm.Problem; osqp_settings: unused (PyGranso brings its own QP solver), taken for the
-        Z-step signature."""
+    def __init__(self, prob, safety, settings: PyGransoSettings):
+        """prob: the step's planner.admm.Problem; safety: its planner.safety.Safety."""
         import torch
 
         self.pygranso, self.Struct = import_pygranso()
@@ -156,6 +169,17 @@ class PyGransoZStep:
         self.H = torch.as_tensor(self.Phi_3.P + self.rho * self.C.T @ self.C)  # the smooth part's exact Hessian
         self.i_lo, self.i_hi = np.flatnonzero(np.isfinite(self.lo)), np.flatnonzero(np.isfinite(self.hi))
         self.b = autodiff_b(safety, safety.source) if safety.source.torch_rollout else source_b(safety)
+        self.carried = None  # (BFGS state, mu) between the Z-updates of one ADMM solve
+
+    def kernel(self):
+        """The Z-update planner.admm's loop calls (planner.zstep.z_update): this Z-step's `update`."""
+        return self
+
+    def update(self, cold, lin, Z, mu, c_Z, radius, fresh):
+        """planner.zstep.sqp_update's arguments and results: Z_{k+1} by PyGranso, its BFGS state carried between the
+        calls of one solve (fresh: afresh); cold, lin and radius are the SQP's and passed through."""
+        Z, self.carried, info = self(Z, mu, c_Z, None if fresh else self.carried)
+        return Z, radius, lin, info, 1
 
     def c(self, Z):
         """Inequality constraints c(Z) <= 0: -b_i(Z) (m^2), then z_min - Z and Z - z_max on the finite bounds."""
@@ -179,7 +203,7 @@ class PyGransoZStep:
                 opts.H0, opts.scaleH0 = H, False  # a learned H0 is already scaled; PyGranso scales only the identity
         return opts
 
-    def carried(self, H):
+    def kept(self, H):
         """The BFGS state to warm-start the next Z-update: L-BFGS as is; a full inverse Hessian only if numerically PD."""
         if self.s.limited_mem_size:
             return H
@@ -212,7 +236,6 @@ class PyGransoZStep:
         b = self.safety(Z_new)
         violation = float(max(-b.min(initial=np.inf), np.max(self.lo - Z_new), np.max(Z_new - self.hi), 0.0))
         code = int(soln.termination_code)
-        info = {"termination": code, "termination_reason": f"pygranso {code}: {TERMINATION.get(code, 'unknown')}",
-                "pygranso_iters": int(soln.iters), "fn_evals": int(soln.fn_evals), "slack": violation,
-                "infeasible": violation > self.s.infeasible_tol, "b_min": float(b.min(initial=np.inf))}
-        return Z_new, (self.carried(soln.H_final), float(soln.final.mu)), info
+        info = PyGransoInfo(code, f"pygranso {code}: {TERMINATION.get(code, 'unknown')}", int(soln.iters),
+                            int(soln.fn_evals), violation, violation > self.s.infeasible_tol, float(b.min(initial=np.inf)))
+        return Z_new, (self.kept(soln.H_final), float(soln.final.mu)), info

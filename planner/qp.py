@@ -1,12 +1,13 @@
-"""The one place OSQP is called: set a convex QP up once, then update vectors (and matrix values) and re-solve; and the
-small box QPs of the Delta- and alpha-updates, solved in closed form when the box is inactive."""
+"""The one place OSQP is called (the safeguard's repair, planner.repair): set a convex QP up once, then update vectors
+(and matrix values) and re-solve."""
 import numpy as np
 import osqp
 from scipy import sparse
 
 
 class SolverFailure(RuntimeError):
-    """OSQP returned no usable solution (infeasible, non-convex, numerical trouble); the MPC step falls back."""
+    """A QP solver (OSQP, DAQP) returned no usable solution (infeasible, non-convex, numerical trouble); the MPC step falls
+    back."""
 
 
 ACCEPTED = ("solved", "solved inaccurate", "maximum iterations reached")
@@ -36,26 +37,3 @@ class QP:
         if result.info.status not in ACCEPTED or not np.all(np.isfinite(result.x)):
             raise SolverFailure(f"OSQP {result.info.status}")
         return result.x
-
-
-class BoxQP:
-    """min 1/2 x'Px + q'x s.t. lo <= x <= hi for a small positive definite P, built once, `solve(q)` per iteration.
-
-    First the unconstrained minimiser -P^-1 q (P inverted once per step): inside the box it is the box QP's solution,
-    exactly, and costs a matrix-vector product; otherwise OSQP, set up at its first use and warm-started."""
-
-    def __init__(self, P, q, lo, hi, settings: dict):
-        self.P = np.asarray(P, float)
-        self.q0, self.settings = q, settings
-        self.lo, self.hi = np.full(len(self.P), lo, float), np.full(len(self.P), hi, float)
-        self.qp = None
-        self.P_inv = np.linalg.inv(self.P)  # scipy's cho_factor and cho_solve: 4x the time in argument checks at 8 x 8
-
-    def solve(self, q):
-        """The box QP's minimiser for linear term q."""
-        x = -(self.P_inv @ q)
-        if np.all(x >= self.lo) and np.all(x <= self.hi):
-            return x
-        if self.qp is None:
-            self.qp = QP(self.P, self.q0, sparse.eye(len(self.P), format="csc"), self.lo, self.hi, self.settings)
-        return self.qp.solve(q=q)

@@ -19,7 +19,7 @@ COLORS = {"admm": "tab:red", "nnmpc": "tab:purple"}
 
 def metrics(ep, scenario):
     """Table II, courtesy and timing metrics of one episode in `scenario`: merged (0/1), t_merge (steps; steps driven if
-    never), C_max, d_min_m, collision, b_imposed_max (m/s^2), courteous (0/1), ttc_min (s), ..."""
+    never; mlflow_metrics logs it in s, only when merged), C_max, d_min_m, collision, b_imposed_max (m/s^2), courteous (0/1), ttc_min (s), ..."""
     rows = ep.rows
     in_lane = [r["step"] for r in rows if abs(r["y"] - scenario.y_ref) <= scenario.merge_tol and r["x"] < scenario.x_ref]
     b_imposed = outcomes.b_imposed_max(ep.states, scenario.params.dt)
@@ -34,6 +34,35 @@ def metrics(ep, scenario):
             "step_ms_median": float(np.median(ms)), "step_ms_p95": float(np.percentile(ms, 95)),
             "admm_iters_mean": float(np.mean(iters)) if iters else 0.0,
             "fallbacks": float(sum(bool(r["fallback"]) for r in rows)), "steps": float(len(rows))}
+
+
+# MLflow's names of the planner's metrics: <quantity>[_<statistic>]_<unit> (s, ms, m, mps2 = m/s^2; none for shares,
+# counts and relative errors), then qualifiers (_lo, _hi: a 95% interval's ends); t_merge logged in s
+MLFLOW_NAMES = {"t_merge": "t_merge_s", "b_imposed_max": "b_imposed_max_mps2", "ttc_min": "ttc_min_s",
+                "step_ms_median": "step_median_ms", "step_ms_p95": "step_p95_ms"}
+
+
+def mlflow_metrics(m: dict, dt: float) -> dict:
+    """metrics() or a batch's aggregate as MLflow logs them: MLFLOW_NAMES (with _lo/_hi), t_merge times dt (s); a value
+    that is not finite (no time to collision, no merge to time) is not logged, and t_merge only where a merge happened."""
+    out = {}
+    for k, v in m.items():
+        base, _, end = k.rpartition("_") if k.endswith(("_lo", "_hi")) else (k, "", "")
+        if base == "t_merge":
+            v = v * dt if m.get("merged", 1) > 0 else float("nan")
+        if np.isfinite(v):
+            out[MLFLOW_NAMES.get(base, base) + (f"_{end}" if end else "")] = float(v)
+    return out
+
+
+def run_name(method: str, source, cfg, scenario) -> str:
+    """A planner run's MLflow name: method, gradient source (+ its predictor where not the source's own), mpc, scenario,
+    seed (a batch: its seed range)."""
+    from planner.gradients import predictor_of
+
+    src = source.name if source.predictor.name == predictor_of(source.name) else f"{source.name}+{source.predictor.name}"
+    seeds = f"seed{cfg.seed}" if not cfg.episodes else f"seeds{cfg.seed}-{cfg.seed + cfg.episodes - 1}"
+    return f"{method}-{src}-{cfg.mpc.name}-{scenario.name}-{seeds}"
 
 
 def write_csv(ep, path):

@@ -5,10 +5,11 @@ from pathlib import Path
 from hydra.utils import get_class, get_object
 from omegaconf import DictConfig
 
-from core.jobs import MissingModel, UserError, build, job_config
+from core.jobs import MissingModel, UserError, build, job_config, sha256
+from core.validate import TRAINED_PREDICTORS
 from distill import certificate
-from planner import closed_loop, mpc
-from planner.gradients import Recording, Source, WorldModel
+from planner import closed_loop, cost, mpc
+from planner.gradients import Recording, Surrogate, WorldModel
 
 
 def planner_config(scenario: str = "two_lane", overrides=()) -> DictConfig:
@@ -25,11 +26,13 @@ def rho(cfg: DictConfig, scenario) -> float:
 
 
 def settings(cfg: DictConfig, scenario) -> mpc.Settings:
-    """The MPC settings of cfg.mpc with the scenario's references (m, m/s), road and bicycle parameters; each value checked
-    where it is defined (planner.mpc.Settings, planner.strategy), one UserError naming the key."""
+    """The MPC settings of cfg.mpc with the paper's cost weights (paper.cost), cfg.linearize and the scenario's references
+    (m, m/s), merge tolerance (m), road and bicycle parameters; each value checked where it is defined (planner.mpc.Settings, planner.strategy),
+    one UserError naming the key."""
     # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
     return build(cfg.mpc, _partial_=True, admm={"rho": rho(cfg, scenario)})(
-        y_ref=scenario.y_ref, v_ref=scenario.v_ref, road=scenario.road, params=scenario.params)
+        weights=cost.Weights(**cfg.paper.cost), linearize=cfg.linearize, y_ref=scenario.y_ref, v_ref=scenario.v_ref,
+        lane_y=scenario.y_ref, merge_tol=scenario.merge_tol, road=scenario.road, params=scenario.params)
 
 
 def setup(cfg: DictConfig):
@@ -55,27 +58,28 @@ def setup(cfg: DictConfig):
                                "teacher's)") from None
         raise
     check_window(cfg, source.predictor)
-    source.judges = judges(cfg, source)
+    if isinstance(source, Surrogate):
+        check_surrogate(source)
     return scenario, source, settings(cfg, scenario)
 
 
-def judges(cfg: DictConfig, source) -> tuple:
-    """The Sources of cfg.judges: the source's predictor loaded from each folder (another training of it), values only;
-    one UserError naming the key where the predictor reads no models or a folder's model does not load."""
-    if not cfg.judges:
-        return ()
-    if "models_dir" not in cfg.predictor:
-        raise UserError(f"judges={list(cfg.judges)}: predictor={source.predictor.name} reads no models; judges are other "
-                        "trainings of a trained predictor (student, teacher)")
-    out = []
-    for i, folder in enumerate(cfg.judges):
-        try:
-            predictor = build(cfg.predictor, models_dir=folder)
-        except UserError as e:
-            raise UserError(f"judges[{i}]={folder}: {e}") from e
-        check_window(cfg, predictor)
-        out.append(Source(f"{source.predictor.name} of {folder}", predictor))
-    return tuple(out)
+def check_surrogate(source: Surrogate) -> None:
+    """One UserError unless gradients=surrogate's learned Jacobians are those of the predictor they stand for: the
+    checkpoint of their source beside surrogate.onnx holds the bytes it was trained on (sha256 in its metadata), and the
+    values are that source's own, or the student's over the teacher's Jacobians (the student distilled from it)."""
+    learned, path = source.surrogate.source, Path(source.surrogate.path)
+    file, digest = path.parent / f"{learned}.ckpt", source.surrogate.source_sha256
+    if not digest:
+        raise UserError(f"{path} does not record the {learned} it learned (ONNX metadata source_sha256); re-run `surrogate`")
+    if not file.is_file():
+        raise UserError(f"{path} learned the Jacobians of {file}, which is not there; re-run `surrogate` beside the {learned}")
+    if sha256(file) != digest:
+        raise UserError(f"{path} learned the Jacobians of another {file.name} (sha256 {digest[:8]}) than {file} "
+                        f"({sha256(file)[:8]}): the {learned} was retrained since; re-run `surrogate`")
+    values = source.predictor.name if source.predictor is not None else learned
+    if values in TRAINED_PREDICTORS and values != learned and (values, learned) != ("student", "teacher"):
+        raise UserError(f"predictor={values}: {path} learned the {learned}'s Jacobians (surrogate source={learned}), not the "
+                        f"{values}'s; use predictor={learned}, or re-run `surrogate source={values}`")
 
 
 def check_window(cfg: DictConfig, predictor) -> None:
@@ -106,7 +110,7 @@ def drive(cfg: DictConfig, scenario, source, s: mpc.Settings, method: str, seed=
     seed = cfg.seed if seed is None else seed
     if cfg.record_dir:
         source = Recording(source)
-    ep = closed_loop.drive(scenario.make_world(seed), lambda obs, warm: step(s, obs, source, warm), source,
+    ep = closed_loop.drive(scenario.make_world(seed), lambda obs, warm: step(s, obs, source.at(obs.history), warm), source,
                            scenario.x_ref, scenario.target_lane, cfg.T_obs, cfg.max_steps, cfg.world, cfg.n_slots)
     if cfg.record_dir:
         source.save(Path(cfg.record_dir) / f"{scenario.name}_{method}_{seed}.npz")

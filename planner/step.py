@@ -7,7 +7,7 @@ result: it returns the fallback (planner.safeguard) with the reason.
 import numpy as np
 
 from core.jobs import UserError
-from planner import admm, jit_admm, jit_rollout, safeguard
+from planner import admm, safeguard
 from planner.mpc import J_of, Observation, Settings, StepResult, alike, build, simulate
 from planner.qp import SolverFailure
 
@@ -17,22 +17,11 @@ def offered(s: Settings, obs: Observation, source, plan: admm.ADMMState):
     taken as its controls' nonlinear rollout (a strategy offers planned plans: mpc.planned), not simulated again."""
     values = safeguard.rollout(s, obs, source, plan.Delta, plan.alpha, plan.Z)[1]
     b_min = safeguard.checked_b(s, values)
-    if not safeguard.acceptable(s, obs, source, b_min):
-        return None, f"unsafe plan (min b_i {b_min:.2f} m^2)"
+    if not safeguard.acceptable(s, b_min, plan.Z):
+        return None, f"unsafe plan ({safeguard.why_not(s, b_min, plan.Z)})"
     return StepResult(u=np.array([plan.Delta[0], plan.alpha[0]]), plan=plan, J=J_of(s, obs.u_prev, *plan[:3]), iters=0,
                       reason="as planned", F_norm=np.nan, b_min=b_min, slack=0.0, fallback="",
                       braking=safeguard.imposed(s, obs, values), values=values), ""
-
-
-def solve(s: Settings, aim: Settings | None, obs: Observation, source, start: admm.ADMMState, zstep):
-    """ADMM (Algorithm 1) with `aim`'s settings from `start`, then the safeguard's check of its plan (checked): (StepResult
-    with fallback "" and J by the scenario's own settings s, or None; why it failed); aim None: `start` as it is, checked.
-    Raises what the solvers raise."""
-    if aim is None:
-        return offered(s, obs, source, start)
-    prob, solvers, start = build(aim, obs, source, None, zstep, start)
-    st, out = aim.core.solve(prob, solvers, start, aim.admm.max_iters, aim.admm.tol_F, aim.admm.tol_step)
-    return checked(s, aim, obs, source, solvers, st, out)
 
 
 def checked(s: Settings, aim: Settings, obs: Observation, source, solvers, st: admm.ADMMState, out: admm.Solve,
@@ -41,16 +30,16 @@ def checked(s: Settings, aim: Settings, obs: Observation, source, solvers, st: a
     when known), repaired if it fails: as solve's result."""
     if not all(np.isfinite(a).all() for a in (st.Delta, st.alpha, st.Z, st.mu)):  # the method: 60% of np.all's time
         return None, "non-finite iterate"
-    values = safeguard.rollout(aim, obs, source, st.Delta, st.alpha, Z)[1]
+    Z, values = safeguard.rollout(aim, obs, source, st.Delta, st.alpha, Z)
     b_min, reason = min(safeguard.checked_b(aim, values), out.zinfo.get("b_min", np.inf)), out.reason
-    if not safeguard.acceptable(aim, obs, source, b_min):
+    if not safeguard.acceptable(aim, b_min, Z):
         why = "infeasible linearisation" if out.zinfo.get("infeasible") else "unsafe plan"
         try:
-            fixed = safeguard.repaired(aim, obs, source, solvers.zstep.safety, st) if aim.safeguard.repair_iters else None
+            fixed = safeguard.repaired(aim, obs, source, solvers.zstep.safety, st) if aim.repair_iters else None
         except (SolverFailure, np.linalg.LinAlgError) as e:
             why, fixed = f"{why}, repair failed ({e})", None
         if fixed is None:
-            return None, f"{why} (min b_i {b_min:.2f} m^2)"
+            return None, f"{why} ({safeguard.why_not(aim, b_min, Z)})"
         (st, b_min, values), reason = fixed, f"{reason}, repaired"
     return StepResult(u=np.array([st.Delta[0], st.alpha[0]]), plan=st, J=J_of(s, obs.u_prev, st.Delta, st.alpha, st.Z),
                       iters=out.iters, reason=reason, F_norm=out.F_norm, b_min=b_min, slack=out.zinfo.get("slack", 0.0),
@@ -72,35 +61,31 @@ def guarded(part):
 
 
 def solve_all(s: Settings, obs: Observation, source, starts, zstep) -> list:
-    """solve from every Start of a step, each guarded: [(StepResult or None, why)]. Where the compiled core runs the
-    source's predictor itself (cv, the student) the starts' ADMM solves run in one compiled call
-    (planner.jit_admm.compiled_solves), with their plans as solve's own; for other sources, one solve after another."""
-    aimed = [k for k, start in enumerate(starts) if start.aim is not None]
-    one_by_one = lambda: [guarded(lambda: solve(s, start.aim, obs, source, start.plan, zstep)) for start in starts]
-    if (len(aimed) < 2 or any(starts[k].aim.core.solve is not jit_admm.admm_solve for k in aimed)
-            or jit_rollout.compiled_params(source) is None):
-        return one_by_one()
+    """ADMM (Algorithm 1) from every Start of a step with its aim's settings, then the safeguard's check of its plan
+    (checked), each guarded: [(StepResult or None, why)]; a Start without an aim is offered as it is. A start aiming
+    only elsewhere than one set up before shares that one's set-up (mpc.build's like); the solves whose Z-step's
+    predictor is written as kernels (admm.compiled) run in one compiled call (admm.compiled_solves), the others one
+    after another, each plan as solved alone."""
     built = {}
-    for k in aimed:  # a start aiming only elsewhere than one set up before shares that one's set-up (mpc.build's like)
-        like = next((b for j, (b, _) in built.items() if b is not None and alike(starts[j].aim, starts[k].aim)), None)
-        built[k] = guarded(lambda: (build(starts[k].aim, obs, source, None, zstep, starts[k].plan, like), ""))
-    ok = [k for k in aimed if built[k][0] is not None and jit_admm.together(built[k][0][1])]
-    admm_of = lambda k: starts[k].aim.admm
-    try:
-        loops = dict(zip(ok, jit_admm.compiled_solves(
-            [(*built[k][0], admm_of(k).max_iters, admm_of(k).tol_F, admm_of(k).tol_step) for k in ok]) if ok else []))
-    except Exception:  # an error inside the joint call (or starts unlike each other): each start's own, one by one
-        return one_by_one()
+    for k, start in enumerate(starts):
+        if start.aim is not None:
+            like = next((b for j, (b, _) in built.items() if b is not None and alike(starts[j].aim, start.aim)), None)
+            built[k] = guarded(lambda: (build(start.aim, obs, source, None, zstep, start.plan, like), ""))
+    ok = [k for k, (b, _) in built.items() if b is not None and admm.compiled(b[1])]
+    stop = lambda k: (starts[k].aim.admm.max_iters, starts[k].aim.admm.tol_F, starts[k].aim.admm.tol_step)
+    joint = lambda: (dict(zip(ok, admm.compiled_solves([(*built[k][0], *stop(k)) for k in ok]))), "")
+    loops = (guarded(joint)[0] or {}) if ok else {}
+    rolled = guarded(lambda: (rollouts(obs, [(k, starts[k].aim.params, loops[k].it) for k in loops]), ""))[0] or {}
 
     def one(k, start):
         if start.aim is None:
             return offered(s, obs, source, start.plan)
-        if k not in loops:  # its set-up failed (built's reason), or it does not solve in one call
-            return built[k] if built[k][0] is None else solve(s, start.aim, obs, source, start.plan, zstep)
-        solvers = built[k][0][1]
-        return checked(s, start.aim, obs, source, solvers, *jit_admm.solved(loops[k], solvers), rolled.get(k))
+        if built[k][0] is None:  # its set-up failed: built's reason
+            return built[k]
+        prob, solvers, st = built[k][0]
+        st, out = admm.solved(loops[k]) if k in loops else admm.admm_solve(prob, solvers, st, *stop(k))
+        return checked(s, start.aim, obs, source, solvers, st, out, rolled.get(k))
 
-    rolled = guarded(lambda: (rollouts(obs, [(k, starts[k].aim.params, loops[k].it) for k in loops]), ""))[0] or {}
     return [guarded(lambda: one(k, start)) for k, start in enumerate(starts)]
 
 

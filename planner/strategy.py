@@ -8,6 +8,7 @@ safeguard; it is the `mpc.strategy` node of the `planner` config.
   driver off the history) and a ranked choice.
 - `Interactive` (mpc=interactive): no behaviour rule; generic candidate plans judged by the predictor's rollout alone.
 """
+import copy
 from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import NamedTuple
@@ -15,17 +16,25 @@ from typing import NamedTuple
 import numpy as np
 
 from core.jobs import UserError
-from core.rollout import b_i, braking
-from core.validate import Int, ListOf, OneOf, Real, check_fields, rule
-from data import bicycle
+from core.validate import Int, ListOf, Real, check_fields, rule
 from data.drivers import IDMDriver
-from planner import admm, jit_chase, jit_interactive, jit_rollout
-from planner.mpc import Observation, Settings, costs, lane_plans, planned, simulate, warm_start
+from data.world import Steering
+from planner import admm, jit_chase, jit_interactive
+from planner.mpc import Observation, Settings, car, costs, lane_plans, planned, simulate, warm_start
 
 NONNEG = Real(0)
 STOP_MARGIN = 2.0  # m: a chasing candidate keeps able to stop this far before its lane's end, braking as hard as a_box allows
-FAR = 1e4  # m: moved this far along the road, a car outside the target lane leaves the room beside a candidate free (Interactive.room)
-K_PSI = 4.0  # 1/s: a candidate's heading loop (drive), faster than any lateral gain k_y it serves: at the world's 2.0 a brisk lean overshot its depth into the safety shape of the car beside
+FAR = 1e4  # m: moved this far along the road, a car outside the target lane leaves the room beside a candidate free (jit_interactive.room)
+K_PSI = 4.0  # 1/s: a candidate's heading loop (steering), faster than the lateral gain K_Y it serves: a slower one lets a brisk lean overshoot its depth into the safety shape of the car beside
+# mpc=interactive's candidates (OpenLoop, ClosedLoop, Chase):
+K_Y = 1.2  # 1/s: a candidate's lateral gain: how briskly it leans and crosses, psi_box capping it
+TAU = 1.0  # s: time constant of a candidate's speed approaching its target
+TAU_X = 2.0  # s: time constant of a gap-targeting candidate closing on the gap's middle
+CHASE_HORIZON = 50  # steps of dt over which a closed-loop candidate is judged: long enough to drop back to a later gap
+CLEARANCE = (0.0, 0.5, 1.5)  # m: the predicted bumper clearances to both gap cars at which a closed-loop candidate enters
+# m/s: closed-loop candidates that lean at the nearby stream's speed plus each (-10: at a standstill) and accept the gap beside
+ACCEPT_DV = (-10.0, -3.0, -1.5)
+ALIGN = 3.0  # m: a chasing candidate leans only this close to its gap's middle
 
 
 class Start(NamedTuple):
@@ -69,18 +78,14 @@ def seen_target_lane(s: Settings, history):
     return x, v, np.flatnonzero(there)
 
 
-@dataclass(frozen=True)
-class KeepAhead:
+class KeepAhead(NamedTuple):
     """When the nearest target-lane car behind the ego (within `near` m) is seen slowing for it, the lean starts aim at
     that car's speed plus dv instead of their own v, so a driver who yields to the nudge is not overtaken by it (SI)."""
 
-    near: float = rule(NONNEG)  # m: how far behind the ego's centre that car's centre may be
-    dv: float = rule(NONNEG)  # m/s: kept above its speed
-    slowing: float = rule(NONNEG)  # m/s^2: it counts as slowing once it decelerates harder than this over the last observed steps
-    slower: float = rule(NONNEG)  # m/s: ... or drives this much slower than the target-lane car ahead of the ego
-
-    def __post_init__(self):
-        check_fields(self, "mpc.strategy.keep_ahead")
+    near: float  # m: how far behind the ego's centre that car's centre may be
+    dv: float  # m/s: kept above its speed
+    slowing: float  # m/s^2: it counts as slowing once it decelerates harder than this over the last observed steps
+    slower: float  # m/s: ... or drives this much slower than the target-lane car ahead of the ego
 
     def speed(self, s: Settings, history):
         """The speed (m/s) of the nearest target-lane car behind the ego, within `near`, when the observed history
@@ -98,78 +103,68 @@ class KeepAhead:
         return float(v[b]) if decel > self.slowing or lag > self.slower else None
 
 
+KEEP_AHEAD = KeepAhead(near=6.0, dv=1.0, slowing=0.5, slower=0.7)  # mpc=courteous's keep-ahead of a yielder (SI)
+# mpc=courteous's nominal follower, which judges the gap a plan leaves: IDM with the cautious end of the dense drivers'
+# headway T (s) and minimum gap s0 (m) (scenario driver_ranges), IDMDriver's defaults otherwise
+FOLLOWER = IDMDriver(T=0.5, s0=1.6)
+PROGRESS = 0.2  # m: a plan that ends this much nearer y_ref than the ego is now, or in the target lane, merges (Rules.choose)
+
+
 @dataclass(frozen=True)
 class Rules:
     """mpc=courteous's strategy: besides the shifted plan, ADMM solves from holding the lane and aims off it (`starts`,
-    each [offset m, a m/s^2, v m/s or None: v_ref]); a lean beside a car seen yielding keeps ahead of it (`keep_ahead`);
-    the plan applied has the least braking above b_courtesy, predicted or the nominal `follower`'s, then merges by the
+    each [offset m, a m/s^2, v m/s or None: v_ref]); a lean beside a car seen yielding keeps ahead of it (KEEP_AHEAD);
+    the plan applied has the least braking above b_courtesy, predicted or the nominal FOLLOWER's, then merges by the
     lowest J, else waits as the first start says."""
 
     starts: tuple
-    progress: float = rule(NONNEG)  # m: a plan that ends this much nearer y_ref than the ego is now, or in the target lane, merges
-    follower: dict | None  # a nominal IDM driver's parameters that differ from IDMDriver's defaults; None: none
-    keep_ahead: KeepAhead | None  # None: the lean starts keep their own v
 
     def __post_init__(self):
-        check_fields(self, "mpc.strategy")
         for start in self.starts:
             ok = isinstance(start, (list, tuple)) and len(start) == 3 and all(
                 isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in start[:2])
             if not ok or not (start[2] is None or (isinstance(start[2], (int, float)) and start[2] >= 0)):
                 raise UserError(f"mpc.strategy.starts: {start} must be [offset m, a m/s^2, v m/s >= 0 or null]")
-        known = set(IDMDriver.__dataclass_fields__)
-        for key, value in (self.follower or {}).items():
-            if key not in known:
-                raise UserError(f"mpc.strategy.follower.{key}: IDMDriver has no such parameter (it has {', '.join(sorted(known))})")
-            if not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
-                raise UserError(f"mpc.strategy.follower.{key}={value}: must be a finite number >= 0")
-
-    @cached_property
-    def driver(self) -> IDMDriver | None:
-        """The nominal follower, IDMDriver with `follower`'s parameters over its defaults; None without one."""
-        return None if self.follower is None else IDMDriver(**self.follower)
 
     def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
         """The shifted plan, ranked after the starts that lean in (offset > 0) and before those that wait in lane (when a
         lean's plan fails or imposes braking, the shifted plan, leaning already, goes on asking the driver behind instead
         of dropping back to the lane centre), then one Start per `starts` entry: ADMM aims at y_ref = the current lane's
         centre moved `offset` towards the scenario's y_ref (0: wait in lane; 1.9: lean in, the nudge) and at v_ref = v
-        (None: the scenario's), from holding the lane at a (mpc.lane_plans); with keep_ahead a lean beside a car seen
-        yielding aims at that car's speed plus dv. The target lane's pull would draw every start into one basin; these
-        solves stay in theirs (choose)."""
+        (None: the scenario's), from holding the lane at a (mpc.lane_plans); a lean beside a car seen yielding aims at
+        that car's speed plus KEEP_AHEAD.dv. The target lane's pull would draw every start into one basin; these solves
+        stay in theirs (choose)."""
         out = [Start("shifted", warm_start(s, obs, warm), s, sum(float(o) > 0 for o, _, _ in self.starts) + 0.5)]
         lane_y = s.road.centre(s.road.lane_of(obs.z0[1]))
-        v_yield = self.keep_ahead.speed(s, obs.history) if self.keep_ahead is not None else None
+        v_yield = KEEP_AHEAD.speed(s, obs.history)
         plans = zip(*lane_plans(s, obs.z0, [a for _, a, _ in self.starts]))  # held lanes, rolled out together
         for rank, ((offset, _, v), (Delta, alpha, Z)) in enumerate(zip(self.starts, plans), 1):
             y, v = lane_y + float(offset) * np.sign(s.y_ref - lane_y), s.v_ref if v is None else float(v)
             if offset > 0 and v_yield is not None:
-                v = float(np.clip(v_yield + self.keep_ahead.dv, *s.v_box))
+                v = float(np.clip(v_yield + KEEP_AHEAD.dv, *s.v_box))
             out.append(Start(f"y {y:+.1f} m, v {v:.1f} m/s", planned(s, obs.z0, Delta, alpha, Z),
                              replace(s, y_ref=y, v_ref=v), rank))
         return out
 
     def follower_braking(self, s: Settings, obs: Observation, Z, values) -> float:
-        """The hardest braking (m/s^2, >= 0) that the nominal follower would need behind the ego's plan Z (4T_p,), for
+        """The hardest braking (m/s^2, >= 0) that the nominal FOLLOWER would need behind the ego's plan Z (4T_p,), for
         each other car behind the ego in the plan's lane at a step: there by the predictor's values (T_p, SLOTS, 2), or
-        last seen there (the world has a car changing lanes follow the leaders of both); 0 without a follower. Constant
-        velocity predicts no braking; this judges the gap a plan leaves, whoever predicts the positions."""
-        if self.driver is None:
-            return 0.0
+        last seen there (the world has a car changing lanes follow the leaders of both). Constant velocity predicts no
+        braking; this judges the gap a plan leaves, whoever predicts the positions."""
         ego = Z.reshape(-1, 4)
         x = np.concatenate([obs.history[-1:, 1:, 0], values[:, 1:, 0]])  # (T_p + 1, N), the last observed step first
         v = np.diff(x, axis=0) / s.params.dt  # (T_p, N): along the road, as IDM follows
         lane = s.road.lane_of(ego[:, 1])[:, None]
         there = (s.road.lane_of(values[:, 1:, 1]) == lane) | (s.road.lane_of(obs.history[-1, 1:, 1]) == lane)
         behind = there & (values[:, 1:, 0] < ego[:, :1])
-        a = [self.driver.acceleration(v[k, i], ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, ego[k, 3])
+        a = [FOLLOWER.acceleration(v[k, i], ego[k, 0] - values[k, i + 1, 0] - s.road.car_length, ego[k, 3])
              for k, i in zip(*np.nonzero(behind))]
         return float(max(0.0, -min(a, default=0.0)))
 
     def choose(self, s: Settings, obs: Observation, plans):
         """Among solved (Start, StepResult), each given its follower's braking: the least braking above b_courtesy
         (m/s^2), predicted or the follower's (without courtesy rows, b_safe is not the planner's to judge: none), then a
-        merge (a plan that ends in the target lane, or `progress` nearer y_ref than the ego) by the lowest cost J;
+        merge (a plan that ends in the target lane, or PROGRESS nearer y_ref than the ego) by the lowest cost J;
         without one, the lowest rank, so an ego that cannot merge yet waits as the first start says instead of pressing
         on beside the gap (the scenario's J, which pulls towards y_ref, would choose that), then J."""
         plans = [(st, r._replace(follower_braking=self.follower_braking(s, obs, r.plan.Z, r.values))) for st, r in plans]
@@ -178,14 +173,14 @@ class Rules:
         y0 = obs.z0[1]
         excess = lambda r: 0.0 if s.b_courtesy is None else max(0.0, r.braking - s.b_courtesy, r.follower_braking - s.b_courtesy)
         merges = lambda r: (s.road.lane_of(r.plan.Z[-3]) == s.road.lane_of(s.y_ref)
-                            or abs(s.y_ref - y0) - abs(s.y_ref - r.plan.Z[-3]) >= self.progress)
+                            or abs(s.y_ref - y0) - abs(s.y_ref - r.plan.Z[-3]) >= PROGRESS)
         return min(plans, key=lambda p: (excess(p[1]), (0, p[1].J) if merges(p[1]) else (1, p[0].rank, p[1].J)))
 
 
-def paces(s: Settings, history, H: int, tau_x: float, stream_dv=(0.0,)) -> dict:
+def paces(s: Settings, history, H: int, tau_x: float) -> dict:
     """The longitudinal profiles a candidate may follow over H steps, from the last two observed steps of the history
     (T_obs, SLOTS, 2): {name: (v_target (H,) m/s, x_target (H,) m or NaN: speed only)}. Stopped; the ego's own speed;
-    the target lane's mean plus each of stream_dv (m/s: below it, the stream passes a leaning ego car by car); and for
+    the target lane's mean; and for
     each gap between two consecutive target-lane cars seen, its middle as both cars would move at their observed
     speeds, tracked with time constant tau_x (s): where a merge into that gap would start."""
     x, v, target = seen_target_lane(s, history)
@@ -193,7 +188,7 @@ def paces(s: Settings, history, H: int, tau_x: float, stream_dv=(0.0,)) -> dict:
     speed = lambda u: (np.full(H, u), np.full(H, np.nan))
     out = {"stop": speed(0.0), "own": speed(v[0])}
     if len(target):
-        out.update({f"stream {dv:+.1f} m/s" if dv else "stream": speed(max(0.0, v[target].mean() + dv)) for dv in stream_dv})
+        out["stream"] = speed(max(0.0, v[target].mean()))
     target = target[np.argsort(x[target])]
     for back, front in zip(target[:-1], target[1:]):
         v_gap = 0.5 * (v[back] + v[front])
@@ -211,48 +206,15 @@ def entering_speed(s: Settings, history) -> float:
     return float(v[ahead[np.argmin(x[ahead])]] if len(ahead) else v[target].mean() if len(target) else v[0])
 
 
-def drive(s: Settings, z, y_target, a, k_y: float):
-    """Controls delta, a (K,) in rad, m/s^2 and next states (K, 4) of K egos in states z (K, 4) that steer to the lateral
-    targets y_target (K,) in m with lateral gain k_y (1/s) and heading gain K_PSI, their heading held within psi_box,
-    accelerating at a (K,) within a_box, never reversing."""
-    p, clip = s.params, lambda u, box: np.minimum(np.maximum(u, box[0]), box[1])  # np.clip's numbers, without its wrapping's microseconds
-    v = np.maximum(z[:, 3], 1.0)
-    psi_d = clip(np.arctan(k_y * (y_target - z[:, 1]) / v), s.psi_box)
-    d = clip((p.l_f + p.l_r) * K_PSI * (psi_d - z[:, 2]) / v, s.delta_box)
-    a = np.maximum(clip(a, s.a_box), -z[:, 3] / p.dt)
-    return d, a, bicycle.step(z, np.array([d, a]).T, p)  # np.stack took 4 us more
-
-
-def car(s: Settings, k_y: float) -> tuple:
-    """jit_interactive.drive's car: (l_f, l_r m, dt s, psi_box rad, delta_box rad, a_box m/s^2, k_y, K_PSI 1/s), as
-    drive reads s and its gains."""
-    p = s.params
-    return tuple(float(c) for c in (p.l_f, p.l_r, p.dt, *s.psi_box, *s.delta_box, *s.a_box, k_y, K_PSI))
-
-
-def track(s: Settings, z0, y_target, v_target, tau: float, k_y: float, x_target=None, tau_x: float = 1.0):
-    """Controls Delta, alpha (K, H) and states Z (K, 4H) of K candidates that steer to the lateral targets y_target
-    (K, H) in m with lateral gain k_y in 1/s (drive) while their speed approaches v_target (K, H) in m/s with time
-    constant tau (s); where x_target (K, H) in m is given (not NaN), the speed aimed at also closes the distance to it
-    with time constant tau_x (s)."""
-    K, H = y_target.shape
-    x_target = np.full((K, H), np.nan) if x_target is None else x_target
-    speed_only = np.isnan(x_target)  # once: np.nan_to_num each step cost more than the rest of the step's maths
-    z = np.repeat(np.asarray(z0, float)[None], K, 0)
-    Delta, alpha, Z = [], [], []
-    for k in range(H):
-        v_aim = np.maximum(0.0, v_target[:, k] + np.where(speed_only[:, k], 0.0, (x_target[:, k] - z[:, 0]) / tau_x))
-        d, a, z = drive(s, z, y_target[:, k], (v_aim - z[:, 3]) / tau, k_y)
-        Delta.append(d)
-        alpha.append(a)
-        Z.append(z)
-    return np.stack(Delta, 1), np.stack(alpha, 1), np.concatenate(Z, 1)
+def steering(s: Settings, k_y: float) -> Steering:
+    """A candidate's steering law: lateral gain k_y, heading gain K_PSI (1/s), its heading set-point within psi_box."""
+    return Steering(float(k_y), K_PSI, float(s.psi_box[0]), float(s.psi_box[1]), -np.inf, np.inf)
 
 
 class Chase:
     """K closed-loop candidates, each chasing one gap of the target lane as the predictor moves its cars: the ego's
-    speed closes on the gap's middle (time constants tau, tau_x in s), never so fast that it could not stop STOP_MARGIN
-    before the lane's end braking as hard as a_box allows; within `align` m of the middle it leans to lean_y (m) to ask
+    speed closes on the gap's middle (time constants TAU, TAU_X in s), never so fast that it could not stop STOP_MARGIN
+    before the lane's end braking as hard as a_box allows; within ALIGN m of the middle it leans to lean_y (m) to ask
     for room; once the predicted bumper clearances to both gap cars reach `clearance` (m) it steers into the target
     lane, and there follows the nearest car ahead by IDM. A gap with no seen car ahead (behind) ends at the nearest
     place an unseen car may be (`unseen`). A candidate with a finite `dv` (m/s) accepts a gap instead of chasing one:
@@ -266,40 +228,35 @@ class Chase:
 
     FOLLOW = IDMDriver(T=0.6, s0=1.5, a_max=2.0, b=3.0)  # the ego's own car-following once in the target lane
 
-    def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, tau: float,
-                 tau_x: float, align: float, unseen, k_y: float, dv=None):
-        self.s, self.gaps, self.k_y = s, np.asarray(gaps, int).reshape(-1, 2), k_y
-        self.lean_y, self.clearance = np.asarray(lean_y, float), np.asarray(clearance, float)
-        self.dv = np.full(len(self.gaps), np.nan) if dv is None else np.asarray(dv, float)
-        self.constants = tuple(float(c) for c in (  # jit_chase.chase_step's scalars after k, in its order
-            *unseen, lane_y, s.y_ref, lane_end - STOP_MARGIN, -2.0 * s.a_box[0], tau, tau_x, align, s.params.dt,
-            s.road.car_length, s.road.lane_width, self.NEAR, self.V_STOPPED))
-        self.z = np.repeat(np.asarray(z0, float)[None], len(self.gaps), 0)
-        self.Delta, self.alpha, self.Z = [], [], []
+    def __init__(self, s: Settings, z0, gaps, lean_y, clearance, lane_y: float, lane_end: float, unseen, dv, T: int):
+        gaps = np.asarray(gaps, np.int64).reshape(-1, 2)
+        K, f = len(gaps), float
+        self.g = jit_chase.Gaps(
+            gaps, np.asarray(dv, f), np.asarray(lean_y, f), np.asarray(clearance, f), *map(f, unseen), f(lane_y),
+            f(s.y_ref), f(lane_end - STOP_MARGIN), -2.0 * f(s.a_box[0]), TAU, TAU_X, ALIGN, f(s.params.dt),
+            f(s.road.car_length), f(s.road.lane_width), f(s.road.lanes), f(s.road.lane_of(s.y_ref)), self.NEAR,
+            self.V_STOPPED, car(s, steering(s, K_Y)), tuple(map(f, self.FOLLOW.following)))
+        self.z = np.repeat(np.asarray(z0, f)[None], K, 0)
+        self.Delta, self.alpha, self.Z = np.empty((K, T)), np.empty((K, T)), np.empty((K, 4 * T))
+
+    def rows(self, b) -> "Chase":
+        """The candidates b (indices) alone, from the same first state (a contingency branch's share)."""
+        out = copy.copy(self)
+        out.g = self.g._replace(**{f: getattr(self.g, f)[b] for f in ("gaps", "dv", "lean_y", "clearance")})
+        out.z, out.Delta, out.alpha, out.Z = (a[b].copy() for a in (self.z, self.Delta, self.alpha, self.Z))
+        return out
 
     def __call__(self, window, k):
         """The egos' xy (K, 2) one step on from the last step of the predicted windows (K, T_obs, SLOTS, 2)."""
-        s, z = self.s, self.z
-        x, v, there = target_lane(s, window)  # (K, SLOTS)
-        a, y_t, follow, gap, v_lead, cap = jit_chase.chase_step(x, v, there, z, self.gaps, self.dv, self.lean_y,
-                                                                self.clearance, k, *self.constants)
-        for b in np.flatnonzero(follow):  # few at a step: IDM by the world's own driver model
-            a[b] = min(self.FOLLOW.acceleration(z[b, 3]) if np.isnan(gap[b]) else
-                       self.FOLLOW.acceleration(z[b, 3], gap[b], v_lead[b]), cap[b])
-        d, a, self.z = drive(s, z, y_t, a, self.k_y)
-        self.Delta.append(d)
-        self.alpha.append(a)
-        self.Z.append(self.z)
-        return self.z[:, :2]
+        jit_chase.move(np.ascontiguousarray(window, float), window.shape[1], self.z, self.g, k, self.Delta, self.alpha,
+                       self.Z)
+        return self.z[:, :2].copy()
 
     def compiled(self, params, history, T: int):
         """Delta, alpha (K, T), Z (K, 4T) and the predicted xy (K, T, SLOTS, 2) of these candidates driven T steps
-        against a predictor the compiled core runs (params: jit_rollout.compiled_params) from the observed history
-        (T_obs, SLOTS, 2), in one compiled call (jit_interactive.chase): Source.react(history, self, T, K)'s, to rounding."""
-        s = self.s
-        lane = (s.params.dt, s.road.lane_width, float(s.road.lanes), float(s.road.lane_of(s.y_ref)))
-        return jit_interactive.chase(*params, np.asarray(history, float), self.z, self.gaps, self.dv, self.lean_y,
-                                     self.clearance, T, self.constants, lane, car(s, self.k_y), self.FOLLOW.following)
+        against a predictor the compiled core runs (params: jit_rollout.values_params) from the observed history
+        (T_obs, SLOTS, 2), in one compiled call (jit_interactive.chase): Source.react(history, self, T, K)'s."""
+        return jit_interactive.chase(*params, np.asarray(history, float), self.z, self.g, T)
 
 
 def unseen(s: Settings, history) -> tuple:
@@ -323,18 +280,12 @@ def gaps(s: Settings, history) -> list:
     return [(f"{where(back)}..{where(front)} m", front, back) for back, front in zip(cars[:-1], cars[1:])]
 
 
-def compiled(source) -> bool:
-    """Whether the candidate search runs in compiled calls for this source: its predictor's rollout is written as numba
-    kernels (cv, the student), whichever source gives the Z-step its Jacobians."""
-    return jit_rollout.values_params(source.predictor) is not None
-
-
 class Judged(NamedTuple):
     """What the predictor's rollout over a candidate's horizon says of it: min b_i (m^2), the hardest braking it
-    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; Interactive.never: none), its
+    imposes on another car (m/s^2), the first step it has merged (within merge_tol of y_ref; Judge.never: none), its
     cost J over T_p, how far (m) it runs out of road: past the point from which, not yet merged, it could still
     stop before its lane's end braking as hard as a_box allows (0: never), and the most room (m^2) it is predicted to
-    find beside it in the target lane (Interactive.room; 0 where the order does not read it)."""
+    find beside it in the target lane (jit_interactive.room)."""
 
     b_min: float
     braking: float
@@ -345,75 +296,44 @@ class Judged(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Interactive:
-    """mpc=interactive: no behaviour rule. Two families of candidate plans, each rolled out by the predictor over
-    `horizon` steps (beyond T_p, so a plan that positions for a later merge has a value). Open loop: wait in lane, lean
-    towards the target lane by `lean`, or lean and then steer into it after each of `merge_steps`, each with a
-    longitudinal profile (`paces`: stopped, its own speed, the stream's, or closing on the middle of a gap between two
-    target-lane cars). Closed loop (`Chase`): for each gap seen in the target lane, each depth of `chase_lean` and each
-    `clearance`, a policy that answers the predictor's moves step by step (the predictor's own recursion drives it:
-    Source.react). A candidate counts when the predicted others stay outside the safety shape and nobody is predicted to
-    brake harder than b_courtesy; among those the earliest merge, then (`wait_by`) the most room predicted beside a
-    candidate that merges within no horizon, then the lowest J. The best `refine` are refined by ADMM (Algorithm 1)
-    towards their own aim and also offered as they are; the plan applied is the first by that order whose step-horizon
-    braking stays within b_courtesy."""
+class OpenLoop:
+    """The open-loop candidates over `horizon` steps (H = max(horizon, T_p)): wait in lane, lean towards the target lane
+    by `lean` (m), or lean and then steer into it after each of `merge_steps`, each with a longitudinal profile (paces:
+    stopped, its own speed, the stream's, or closing on the middle of a gap), their speed approaching it with time
+    constant TAU (s), closing on a gap's middle with TAU_X (s), steering with lateral gain K_Y (1/s); and the shifted
+    previous plan, continued beyond T_p as they drive."""
 
-    lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
-    merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
-    horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges an open-loop candidate; at least T_p
-    chase_horizon: int = rule(Int(1))  # steps (of dt) over which it judges a closed-loop one; at least T_p
-    tau: float = rule(Real(0, lo_open=True))  # s: time constant of a candidate's speed approaching its target
-    tau_x: float = rule(Real(0, lo_open=True))  # s: time constant of a gap-targeting candidate closing on the gap's middle
-    k_y: float = rule(Real(0, lo_open=True))  # 1/s: a candidate's lateral gain (drive): how briskly it leans and crosses, within psi_box
-    stream_dv: tuple = rule(ListOf(Real(), at_least=1))  # m/s: the speeds relative to the stream's mean a candidate may hold
-    chase_lean: tuple = rule(ListOf(Real(0)))  # m: how far a gap-chasing candidate leans to ask for room; []: no such candidates
-    clearance: tuple = rule(ListOf(Real(0), at_least=1))  # m: predicted bumper clearance to both gap cars at which a chasing candidate enters
-    accept_dv: tuple = rule(ListOf(Real()))  # m/s: for each, closed-loop candidates that lean at the nearby stream's speed plus it and accept the gap beside them; []: none
-    align: float = rule(Real(0))  # m: a chasing candidate leans only this close to its gap's middle
-    lane_end: float = rule(Real())  # m: where the ego's lane ends (the scenario's x_ref): a chasing candidate can always stop before it
-    refine: int = rule(Int(1))  # how many of the best candidates ADMM refines
-    merge_tol: float = rule(Real(0, lo_open=True))  # m: a candidate has merged once its centre is this close to y_ref (the scenario's)
-    wait_by: str = rule(OneOf(("room", "J")))  # how candidates that merge within no horizon are ordered before J: by the most room predicted beside them (room), or not (J)
-    trust: int | None = rule(Int(1, nullable=True))  # steps of a learned (`fitted`) predictor's rollout the verdicts read; beyond, every other car goes on at its last predicted velocity (None: all)
+    lean: float
+    merge_steps: tuple
+    horizon: int
 
-    def __post_init__(self):
-        check_fields(self, "mpc.strategy")
-
-    def never(self, s: Settings) -> int:
-        """The merge step of a verdict whose candidate does not merge: one past both families' horizons."""
-        return max(self.horizon, self.chase_horizon, s.T_p) + 1
-
-    def plans(self, s: Settings, obs: Observation, warm, compiled: bool = False):
-        """(names, Delta (K, H), alpha (K, H), Z (K, 4H)) of every open-loop candidate over the
-        horizon H; compiled: their bicycle rollouts by jit_interactive's track (the numbers to rounding),
-        as for the sources the compiled core runs."""
+    def plans(self, s: Settings, obs: Observation, warm):
+        """(names, Delta (K, H), alpha (K, H), Z (K, 4H)) of every open-loop candidate."""
         H, y0 = max(self.horizon, s.T_p), obs.z0[1]
         lane_y = s.road.centre(s.road.lane_of(y0))
         towards = np.sign(s.y_ref - lane_y)
         lateral = {"merged": np.full(H, s.y_ref)} if towards == 0 else {
             "wait": np.full(H, lane_y), "lean": np.full(H, lane_y + towards * self.lean),
             **{f"merge after {m}": np.where(np.arange(H) < m, lane_y + towards * self.lean, s.y_ref) for m in self.merge_steps}}
-        pace = paces(s, obs.history, H, self.tau_x, self.stream_dv)
+        pace = paces(s, obs.history, H, TAU_X)
         names = [f"{lat}, {p}" for lat in lateral for p in pace]
         y_t = np.array([lateral[lat] for lat in lateral for _ in pace])
         x_t = np.array([x for _ in lateral for _, x in pace.values()])
         v_t = np.array([v for _ in lateral for v, _ in pace.values()])
         v_t = np.where((y_t == s.y_ref) & np.isnan(x_t), entering_speed(s, obs.history), v_t)  # in the lane: its leader's pace
-        Delta, alpha, Z = self.track(s, obs.z0, y_t, v_t, x_t, compiled)
+        Delta, alpha, Z = self.track(s, obs.z0, y_t, v_t, x_t)
         if warm is not None:
-            d, a, z = self.shifted(s, obs, warm, H, compiled)
+            d, a, z = self.shifted(s, obs, warm, H)
             names = [*names, "shifted"]
             Delta, alpha, Z = np.vstack([Delta, d]), np.vstack([alpha, a]), np.vstack([Z, z])
         return names, Delta, alpha, Z
 
-    def track(self, s: Settings, z0, y_t, v_t, x_t, compiled: bool):
-        """strategy.track with this strategy's tau, tau_x and k_y: Delta, alpha (K, H), Z (K, 4H) from z0 (4,) towards
-        y_t, v_t, x_t (K, H) in m, m/s, m; compiled: by jit_interactive.track (the numbers to rounding)."""
-        if compiled:
-            return jit_interactive.track(np.asarray(z0, float), y_t, v_t, x_t, self.tau, self.tau_x, car(s, self.k_y))
-        return track(s, z0, y_t, v_t, self.tau, self.k_y, x_t, self.tau_x)
+    def track(self, s: Settings, z0, y_t, v_t, x_t):
+        """Delta, alpha (K, H), Z (K, 4H) of K candidates from z0 (4,) steering to y_t (K, H) m while their speed
+        approaches v_t (K, H) m/s, closing on x_t (K, H) m where it is not NaN (jit_interactive.track)."""
+        return jit_interactive.track(np.asarray(z0, float), y_t, v_t, x_t, TAU, TAU_X, car(s, steering(s, K_Y)))
 
-    def shifted(self, s: Settings, obs: Observation, warm, H: int, compiled: bool = False):
+    def shifted(self, s: Settings, obs: Observation, warm, H: int):
         """Delta, alpha (1, H) and Z (1, 4H) of the shifted previous plan, continued beyond T_p as the open-loop
         candidates drive: into the target lane at its leader's pace once the plan ends there, else holding its last y
         and v. So the plan applied last step is judged again whole (a "merge after 3" chosen now is "merge after 2"
@@ -426,49 +346,107 @@ class Interactive:
         merged = s.road.lane_of(end[1]) == s.road.lane_of(s.y_ref)
         y_t = np.full((1, H - s.T_p), s.y_ref if merged else end[1])
         v_t = np.full((1, H - s.T_p), entering_speed(s, obs.history) if merged else end[3])
-        d, a, z = self.track(s, end, y_t, v_t, np.full_like(y_t, np.nan), compiled)
+        d, a, z = self.track(s, end, y_t, v_t, np.full_like(y_t, np.nan))
         return (np.concatenate([prev.Delta, d[0]])[None], np.concatenate([prev.alpha, a[0]])[None],
                 np.concatenate([z_p, z[0]])[None])
 
-    def chased(self, s: Settings, obs: Observation, source):
-        """(names, Delta (K, H), alpha (K, H), Z (K, 4H), values (K, H, SLOTS, 2)) of the closed-loop candidates
-        (Chase), each driven against the predictor's rollout in one batched recursion; for a source the compiled core
-        runs, in one compiled call (Chase.compiled)."""
-        H, lane_y = max(self.chase_horizon, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
-        lean_y = [lane_y + np.sign(s.y_ref - lane_y) * d for d in self.chase_lean]
-        combos = [(f"chase gap {g}", f, b, y, c, np.nan) for g, f, b in gaps(s, obs.history) for y in lean_y
-                  for c in self.clearance]
-        combos += [(f"accept the gap beside at the stream {dv:+.1f} m/s", 0, 0, y, c, dv) for dv in self.accept_dv
-                   for y in lean_y for c in self.clearance]
+
+@dataclass(frozen=True)
+class ClosedLoop:
+    """The closed-loop candidates (Chase) over CHASE_HORIZON steps (at least T_p): for each gap seen in the target lane
+    and each of CLEARANCE (m), a policy that leans by `lean` (m) and chases the gap; for each of ACCEPT_DV (m/s) and
+    each clearance, one that accepts the gap beside it; each answers the predictor's moves step by step, leaning only
+    within ALIGN (m) of its gap's middle, always able to stop before `lane_end` (m)."""
+
+    lean: float
+    lane_end: float
+
+    def chased(self, s: Settings, obs: Observation, source, hyp=None):
+        """(names (K,), Delta (BK, H), alpha (BK, H), Z (BK, 4H), values (BK, H, SLOTS, 2)) of the K closed-loop
+        candidates, each driven against the predictor's rollout (Source.drive); with hypotheses hyp (B, SLOTS), once
+        under each (branch-major, in one call), each branch answering as its own feedback from the shared first step."""
+        H, lane_y = max(CHASE_HORIZON, s.T_p), s.road.centre(s.road.lane_of(obs.z0[1]))
+        y = lane_y + np.sign(s.y_ref - lane_y) * self.lean
+        combos = [(f"chase gap {g}", f, b, y, c, np.nan) for g, f, b in gaps(s, obs.history) for c in CLEARANCE]
+        combos += [(f"accept the gap beside at the stream {dv:+.1f} m/s", 0, 0, y, c, dv) for dv in ACCEPT_DV
+                   for c in CLEARANCE]
         if not combos or s.road.lane_of(obs.z0[1]) == s.road.lane_of(s.y_ref):
             return [], np.empty((0, H)), np.empty((0, H)), np.empty((0, 4 * H)), np.empty((0, H, *np.shape(obs.history)[1:]))
-        _, front, back, lean, clear, dv = zip(*combos)
-        policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, self.tau, self.tau_x,
-                       self.align, unseen(s, obs.history), self.k_y, dv)
-        params = jit_rollout.values_params(source.predictor)
-        if params is None:
-            values = source.react(obs.history, policy, H, len(combos))
-            Delta, alpha, Z = np.stack(policy.Delta, 1), np.stack(policy.alpha, 1), np.concatenate(policy.Z, 1)
-        else:
-            Delta, alpha, Z, values = policy.compiled(params, obs.history, H)
-        values = self.held(source, obs.history, values)
         names = [f"{what}, lean to {y:.2f} m, enter at {c} m" for what, _, _, y, c, _ in combos]
-        return names, Delta, alpha, Z, values
+        if hyp is not None:
+            combos, source = combos * len(hyp), source.given(np.repeat(hyp, len(combos), 0))
+        _, front, back, lean, clear, dv = zip(*combos)
+        policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, unseen(s, obs.history), dv, H)
+        return names, *source.drive(obs.history, policy, H)
 
-    def predict(self, obs: Observation, source, Z):
-        """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
-        one compiled call where the predictor's rollout is compiled (jit_rollout.jit_values), whatever the source;
-        beyond `trust` steps held (held). The rollout is causal, so it runs only over the steps that are read."""
-        ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
-        trusted = np.ascontiguousarray(ego[:, :self.read(source, ego.shape[1])])
-        rollouts = jit_rollout.jit_values(source.predictor)
-        values = source.values(obs.history, trusted) if rollouts is None else rollouts(obs.history, trusted)
-        return self.held(source, obs.history, values, ego)
+
+@dataclass(frozen=True)
+class Branches:
+    """The hypotheses a contingency step judges every candidate under, from a source that gives them with their
+    probabilities (Source.hypotheses; any other is one branch): every combination of yields / does not yield of the
+    cars that matter, the nearest first, while at most `most` combinations keep probability >= `p_min`; a car whose
+    less probable hypothesis is below p_min, or beyond those, takes its more probable one (not yielding at even odds):
+    a plan relies on a yield only where it is judged under both."""
+
+    p_min: float
+    most: int
+
+    def of(self, obs: Observation, source):
+        """(hypotheses (B, SLOTS), 1: the car yields, or None: one branch; probabilities (B,) summing to 1), the most
+        probable first: the source's plain rollout's."""
+        if not source.hypotheses:
+            return None, np.ones(1)
+        p = np.asarray(source.belief(obs.history), float)
+        xy = obs.history[-1]
+        combos = [(1.0, (p > 0.5).astype(float))]
+        for i in np.argsort(np.hypot(*(xy[1:] - xy[0]).T), kind="stable") + 1:
+            if min(p[i], 1.0 - p[i]) < self.p_min:
+                continue
+            split = [(w * q, np.where(np.arange(len(p)) == i, v, h)) for w, h in combos for q, v in ((1 - p[i], 0.0), (p[i], 1.0))]
+            kept = [c for c in split if c[0] >= self.p_min]
+            if not kept or len(kept) > self.most:
+                break
+            combos = kept
+        combos.sort(key=lambda c: -c[0])  # stable: of equal odds the first made (not yielding)
+        w = np.array([c[0] for c in combos])
+        return np.array([c[1] for c in combos]), w / w.sum()
+
+
+def merged(judged: list, w) -> list:
+    """The verdicts on K candidates from theirs under each of B branches (B*K, branch-major) with probabilities w (B,):
+    as unsafe, discourteous and out of road as the worst branch, merging, costing and finding room as their
+    probability-weighted mean (their common value where they agree: a merge in no branch stays Judge.never)."""
+    def mean(values):
+        return values[0] if len(set(values)) == 1 else float(np.dot(w, values))
+
+    K = len(judged) // len(w)
+    return [Judged(min(j.b_min for j in js), max(j.braking for j in js), mean([j.merge for j in js]),
+                   mean([j.J for j in js]), max(j.overrun for j in js), mean([j.room for j in js]))
+            for js in (judged[k::K] for k in range(K))]
+
+
+@dataclass(frozen=True)
+class Judge:
+    """The predictor's verdict on candidates (Judged): its rollout read over `trust` steps for a learned (`fitted`)
+    predictor (None: all), every other car beyond going on at its last predicted velocity; merged once within the
+    settings' merge_tol (m) of y_ref; out of road past the point from which it could no longer stop before `lane_end`
+    (m); `never`: the merge step of a candidate that merges within no horizon."""
+
+    lane_end: float
+    trust: int | None
+    never: int
 
     def read(self, source, H: int) -> int:
         """How many of H rollout steps the verdicts read: `trust` for a learned (`fitted`) predictor, else all H."""
         fitted = self.trust is not None and getattr(source.predictor, "fitted", False)
         return min(self.trust, H) if fitted else H
+
+    def predict(self, obs: Observation, source, Z):
+        """The predicted values (K, H, SLOTS, 2) under each open-loop candidate's states Z (K, 4H): one batched rollout,
+        beyond `trust` steps held (held). The rollout is causal, so it runs only over the steps that are read."""
+        ego = Z.reshape(len(Z), -1, 4)[:, :, :2]
+        trusted = np.ascontiguousarray(ego[:, :self.read(source, ego.shape[1])])
+        return self.held(source, obs.history, source.values(obs.history, trusted), ego)
 
     def held(self, source, history, values, ego=None):
         """values (K, T, SLOTS, 2) continued to every step of the ego's path ego (K, H, 2) (None: as many as values),
@@ -486,60 +464,20 @@ class Interactive:
         out[:, T:, 1:] = last[:, None] + steps * (last - before)[:, None]
         return out
 
-    def judge(self, s: Settings, obs: Observation, source, Delta, alpha, Z) -> list[Judged]:
-        """The predictor's verdict on each open-loop candidate (K, H) (predict, verdicts)."""
-        return self.verdicts(s, obs, self.predict(obs, source, Z), Delta, alpha, Z, compiled(source))
+    def kernel(self, s: Settings) -> jit_interactive.Judge:
+        """What the compiled verdicts read, from the settings s."""
+        f = float
+        return jit_interactive.Judge(f(s.R), f(s.stretch), f(s.shape), f(s.params.dt), f(s.y_ref), f(s.merge_tol),
+                                     -2.0 * f(s.a_box[0]), f(self.lane_end), self.never, f(s.road.lane_width),
+                                     f(s.road.lanes), f(s.road.lane_of(s.y_ref)), FAR)
 
-    def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, compiled: bool = False) -> list[Judged]:
-        """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H); compiled: by
-        jit_interactive.verdicts (these numbers, to rounding), as for the sources the compiled core runs."""
-        room = self.room(s, values, Z, compiled) if self.wait_by == "room" else np.zeros(len(values))  # by J: never read
-        if compiled:
-            return self.compiled_verdicts(s, obs, values, Delta, alpha, Z, room)
-        K, H = Delta.shape
-        ego = Z.reshape(K, H, 4)
-        b, brakes = self.foreseen(s, obs, values)
-        in_target = np.abs(ego[:, :, 1] - s.y_ref) <= self.merge_tol  # as the episode counts it: astride the line is not in
-        merge = np.where(in_target.any(axis=1), in_target.argmax(axis=1) + 1, self.never(s))
-        reach = ego[:, :, 0] + ego[:, :, 3] ** 2 / (-2.0 * s.a_box[0]) - self.lane_end
-        overrun = np.maximum(0.0, np.where(np.cumsum(in_target, axis=1) == 0, reach, 0.0).max(axis=1))
-        Phi_1, Phi_2, Phi_3 = costs(s, obs.u_prev)  # once for all candidates: J_of would build them per candidate
-        J = [Phi_1(Delta[k, :s.T_p]) + Phi_2(alpha[k, :s.T_p]) + Phi_3(Z[k, :4 * s.T_p]) for k in range(K)]
-        return [Judged(*x) for x in zip(b, brakes, merge, J, overrun, room)]
-
-    @staticmethod
-    def room(s: Settings, values, Z, compiled: bool = False):
-        """The most room (K,) in m^2 the predicted values (K, H, SLOTS, 2) leave beside each candidate's path Z (K, 4H)
-        in the target lane: at each step, the least b_i between the ego put at its x on the target lane's centre and
-        the cars in that lane (core.rollout.b_i's shape), then the most of those over the horizon. What a candidate
-        that merges within no horizon has to show: the room it is predicted to open, or to meet, for a later merge.
-        compiled: by jit_interactive.room (these numbers, to rounding)."""
-        if compiled:
-            return jit_interactive.room(values, Z, float(s.R), float(s.stretch), float(s.shape), float(s.y_ref),
-                                        float(s.road.lane_width), float(s.road.lanes), float(s.road.lane_of(s.y_ref)), FAR)
-        K, H = values.shape[:2]
-        v = np.array(values, float)
-        v[:, :, 0] = np.stack([Z.reshape(K, Z.shape[1] // 4, 4)[:, :H, 0], np.full((K, H), s.y_ref)], -1)
-        elsewhere = s.road.lane_of(v[:, :, 1:, 1]) != s.road.lane_of(s.y_ref)
-        v[:, :, 1:, 0] += np.where(elsewhere, FAR, 0.0)  # a car outside the target lane leaves room there
-        b = b_i(v.reshape(K * H, *v.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H)
-        return b.reshape(len(b), K, H).min(axis=0, initial=np.inf).max(axis=1, initial=-np.inf)
-
-    @staticmethod
-    def foreseen(s: Settings, obs: Observation, values) -> tuple:
-        """(min b_i (K,) m^2, the hardest braking imposed on another car (K,) m/s^2) of predicted values (K, H, SLOTS, 2):
-        what a verdict takes from the predictor."""
-        K, H = values.shape[:2]
-        b = b_i(values.reshape(K * H, *values.shape[2:]), s.R, s.stretch, s.shape)  # (N, K H): every step of every candidate at once
-        b = b.reshape(len(b), K, H).min(axis=(0, 2), initial=np.inf)
-        return b, braking(values, obs.history, s.params.dt)
-
-    def compiled_verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z, room) -> list[Judged]:
-        """verdicts in one compiled call (jit_interactive.verdicts), with each candidate's room (K,) m^2."""
-        shape = tuple(float(c) for c in (s.R, s.stretch, s.shape, s.params.dt))
-        road = (float(s.y_ref), float(self.merge_tol), -2.0 * float(s.a_box[0]), float(self.lane_end), self.never(s))
+    def verdicts(self, s: Settings, obs: Observation, values, Delta, alpha, Z) -> list[Judged]:
+        """The verdict of the predicted values (K, H, SLOTS, 2) on each candidate (K, H) (jit_interactive.verdicts), with
+        the most room (m^2) the predictor leaves beside it in the target lane (jit_interactive.room)."""
+        j, history = self.kernel(s), np.asarray(obs.history, float)
+        room = jit_interactive.room(values, Z, j)
         forms = tuple((f.P, f.q, float(f.r)) for f in costs(s, obs.u_prev))
-        out = jit_interactive.verdicts(values, np.asarray(obs.history, float), Delta, alpha, Z, shape, road, forms, s.T_p)
+        out = jit_interactive.verdicts(values, history, Delta, alpha, Z, j, forms, s.T_p)
         return [Judged(*x) for x in zip(*(a.tolist() for a in (*out, room)))]
 
     @staticmethod
@@ -549,44 +487,80 @@ class Interactive:
         return j.b_min >= 0.0 and j.overrun == 0.0 and (s.b_courtesy is None or j.braking <= s.b_courtesy)
 
     def order(self, s: Settings, judged: list[Judged]) -> list[int]:
-        """Candidates best first: the acceptable ones by the earliest merge, those that merge within no horizon by
-        `wait_by` (the most room, or none), then the lowest J; the others after them, the least unsafe first, then the
-        least out of road."""
-        b_c, never = np.inf if s.b_courtesy is None else s.b_courtesy, self.never(s)
-        waiting = lambda j: -j.room if self.wait_by == "room" and j.merge == never else 0.0
+        """Candidates best first: the acceptable ones by the earliest merge, those that merge within no horizon by the
+        most room, then the lowest J; the others after them, the least unsafe first, then the least out of road."""
+        b_c = np.inf if s.b_courtesy is None else s.b_courtesy
+        waiting = lambda j: -j.room if j.merge == self.never else 0.0
         return sorted(range(len(judged)), key=lambda k: (0, judged[k].merge, waiting(judged[k]), judged[k].J) if self.acceptable(s, judged[k])
                       else (1, -min(judged[k].b_min, 0.0), judged[k].overrun, max(judged[k].braking - b_c, 0.0)))
 
+
+@dataclass(frozen=True)
+class Interactive:
+    """mpc=interactive: no behaviour rule. Candidates of two families (OpenLoop, ClosedLoop), rolled out by the
+    predictor beyond T_p, so a plan that positions for a later merge has a value; each judged by the predictor alone
+    (Judge); the best refined by ADMM (Algorithm 1) towards its own path and also offered as it is; the plan applied
+    is the first by that order whose step-horizon braking stays within b_courtesy. The settings are the parts'."""
+
+    lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
+    merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
+    horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges an open-loop candidate; at least T_p
+    lane_end: float = rule(Real())  # m: where the ego's lane ends (the scenario's x_ref): a chasing candidate can always stop before it
+    trust: int | None = rule(Int(1, nullable=True))  # steps of a learned (`fitted`) predictor's rollout the verdicts read; beyond, every other car goes on at its last predicted velocity (None: all)
+    branch_p: float = rule(Real(0, 0.5, lo_open=True))  # a hypothesis combination is judged only with at least this probability (Branches)
+    branches: int = rule(Int(1))  # at most this many combinations a step (Branches)
+
+    def __post_init__(self):
+        check_fields(self, "mpc.strategy")
+
+    @cached_property
+    def open_loop(self) -> OpenLoop:
+        """The open-loop family."""
+        return OpenLoop(self.lean, self.merge_steps, self.horizon)
+
+    @cached_property
+    def closed_loop(self) -> ClosedLoop:
+        """The closed-loop family."""
+        return ClosedLoop(self.lean, self.lane_end)
+
+    @cached_property
+    def branches_of(self) -> Branches:
+        """The hypotheses every candidate is judged under."""
+        return Branches(self.branch_p, self.branches)
+
+    def judge(self, s: Settings) -> Judge:
+        """The judge of both families' candidates under the settings s (its `never`: one past every horizon)."""
+        return Judge(self.lane_end, self.trust, max(self.horizon, CHASE_HORIZON, s.T_p) + 1)
+
     def ranked(self, s: Settings, obs: Observation, warm, source):
-        """Every candidate of both families, best first by the predictor's verdict: (names, Delta (K, T_p), alpha (K, T_p),
-        Z (K, 4T_p), verdicts), each in that order."""
-        names, Delta, alpha, Z = self.plans(s, obs, warm, compiled(source))
-        judged = self.judge(s, obs, source, Delta, alpha, Z)
-        c_names, c_Delta, c_alpha, c_Z, c_values = self.chased(s, obs, source)
-        judged += self.verdicts(s, obs, c_values, c_Delta, c_alpha, c_Z, compiled(source))
-        for other in source.judges:  # each closed-loop candidate as driven against the source, its path then held fixed
-            worse = [self.foreseen(s, obs, self.predict(obs, other, z)) for z in (Z, c_Z) if len(z)]
-            b, brakes = (np.concatenate(x) for x in zip(*worse))
-            judged = [j._replace(b_min=min(j.b_min, w), braking=max(j.braking, a)) for j, w, a in zip(judged, b, brakes)]
+        """Every candidate of both families, best first by the predictor's verdict (with hypotheses, merged over the
+        branches: Branches, merged): (names, Delta (K, T_p), alpha (K, T_p), Z (K, 4T_p), verdicts), each in that order;
+        a closed-loop candidate's plan is its most probable branch's."""
+        judge, (hyp, w) = self.judge(s), self.branches_of.of(obs, source)
+        names, Delta, alpha, Z = self.open_loop.plans(s, obs, warm)
+        B, K = len(w), len(Z)
+        tile = lambda a: np.tile(a, (B, 1))
+        under = source if hyp is None else source.given(np.repeat(hyp, K, 0))
+        judged = merged(judge.verdicts(s, obs, judge.predict(obs, under, tile(Z)), tile(Delta), tile(alpha), tile(Z)), w)
+        c_names, c_Delta, c_alpha, c_Z, c_values = self.closed_loop.chased(s, obs, source, hyp)
+        judged += merged(judge.verdicts(s, obs, judge.held(under, obs.history, c_values), c_Delta, c_alpha, c_Z), w)
+        c_Delta, c_alpha, c_Z = (a[:len(c_names)] for a in (c_Delta, c_alpha, c_Z))  # the most probable branch's
         names, T = [*names, *c_names], s.T_p  # the families' horizons differ; the MPC's is shared
         Delta, alpha = np.vstack([Delta[:, :T], c_Delta[:, :T]]), np.vstack([alpha[:, :T], c_alpha[:, :T]])
         Z = np.vstack([Z[:, :4 * T], c_Z[:, :4 * T]])
-        k = self.order(s, judged)
+        k = judge.order(s, judged)
         return [names[i] for i in k], Delta[k], alpha[k], Z[k], [judged[i] for i in k]
 
     def candidates(self, s: Settings, obs: Observation, warm, source) -> list[Start]:
-        """The best `refine` candidates of both families (ranked), each as ADMM's start aimed at its own path (its y
-        and v at every step of T_p: the refined plan keeps to what the predictor judged, where an aim at its end state
-        would let ADMM cut across to it, along the safety shape's edge) and as it is (aim None: the safeguard's check
-        only)."""
+        """The best candidate of both families (ranked) as ADMM's start aimed at its own path (its y and v at every step
+        of T_p: the refined plan keeps to what the predictor judged, where an aim at its end state would let ADMM cut
+        across to it, along the safety shape's edge) and as it is (aim None: the safeguard's check only)."""
         names, Delta, alpha, Z, _ = self.ranked(s, obs, warm, source)
-        out = []
-        for rank in range(min(self.refine, len(names))):
-            plan = planned(s, obs.z0, Delta[rank], alpha[rank], Z[rank])
-            path = Z[rank].reshape(s.T_p, 4)
-            out += [Start(names[rank], plan, replace(s, y_ref=tuple(path[:, 1]), v_ref=tuple(path[:, 3])), rank),
-                    Start(f"{names[rank]} as planned", plan, None, rank + 0.5)]
-        return out
+        if not names:
+            return []
+        plan, path = planned(s, obs.z0, Delta[0], alpha[0], Z[0]), Z[0].reshape(s.T_p, 4)
+        return [Start(names[0], plan, replace(s, y_ref=tuple(path[:, 1]), v_ref=tuple(path[:, 3])), 0),
+                Start(f"{names[0]} as planned", plan, None, 0.5)]
 
     def choose(self, s: Settings, obs: Observation, plans):
         """The best-ranked plan whose predicted braking over T_p stays within b_courtesy, else the least braking."""

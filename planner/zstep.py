@@ -1,25 +1,29 @@
-"""Z-update solvers behind one signature, chosen by the `zstep` config group (conf/zstep/); `sqp` is sequential QP with OSQP.
+"""The Z-update, argmin_Z Phi_3(Z) + mu'CZ + rho/2 ||CZ - c_Z||^2 s.t. the state box and b_i(Z) >= 0, chosen by the
+`zstep` config group (conf/zstep/); `sqp` is trust-region sequential QP over the ego's x, y (m), each QP solved by DAQP
+with the linearised b_i >= 0 as soft rows priced by the L1 slack penalty (planner.daqp_qp).
 
-A Z-step is built once per MPC step from (problem, safety, OSQP settings), the problem a planner.admm.Problem (its
-Phi_3, C, rho and state box), and called per ADMM iteration as zstep(Z_k, mu, c_Z, zstate) -> (Z_{k+1}, zstate, info),
-where zstate is the solver's own carried state (None at first, and whenever ADMM wants it to start afresh). Its class
-attribute `name` is the option's name (MLflow param `zstep`). An info key `lin_offset` (m) says how far Z_{k+1} lies from where b_i was last
-linearised (see planner.admm.admm_solve).
-"""
-from functools import lru_cache
+The SQP step is one kernel (sqp_update, numba's subset) that planner.admm's loop calls: compiled with it for the
+predictors written as kernels (cv, the student), run from Python for the others. A Z-step is built once per MPC step
+from (problem, safety) and gives the loop its `kernel()`; its class attribute `name` is the option's
+name (MLflow param `zstep`)."""
 from typing import NamedTuple
 
 import numpy as np
-from scipy import sparse
+from numba import njit
+from numba.extending import overload, register_jitable
 
-from planner.qp import QP
+from core.jit_linalg import matvec, rmatvec
+from core.jobs import STOPS
+from planner import daqp_qp
+from planner.daqp_qp import INF
+from planner.safety import offset, safety_rows, trial_rows
 
 
 class TrustRegion(NamedTuple):
-    """The trust-region test of an SQP step on the merit function (Nocedal and Wright's Algorithm 4.1), one set of
-    constants for both cores: a step is accepted when its actual decrease is at least `accept` times the predicted one
-    (or the prediction is below `flat`: nothing left to gain); after one with at least `good` times it that reached
-    `full` times the radius, the radius grows `grow` times; a rejected step shrinks it `shrink` times."""
+    """The trust-region test of an SQP step on the merit function (Nocedal and Wright's Algorithm 4.1): a step is
+    accepted when its actual decrease is at least `accept` times the predicted one (or the prediction is below `flat`:
+    nothing left to gain); after one with at least `good` times it that reached `full` times the radius, the radius
+    grows `grow` times; a rejected step shrinks it `shrink` times."""
 
     accept: float
     good: float
@@ -32,7 +36,8 @@ class TrustRegion(NamedTuple):
 TRUST_REGION = TrustRegion(accept=0.1, good=0.75, full=0.99, grow=2.0, shrink=0.5, flat=1e-12)
 
 
-def verdict(actual, predicted, step, radius, tr: TrustRegion, min_radius, max_radius):
+@register_jitable(inline="always")
+def verdict(actual, predicted, step, radius, tr, min_radius, max_radius):
     """The trust-region test of a step of size `step` (inf-norm, m) at radius `radius` (m): (accepted, next radius)."""
     if actual >= tr.accept * predicted or predicted <= tr.flat:
         if actual >= tr.good * predicted and step >= tr.full * radius:
@@ -43,7 +48,7 @@ def verdict(actual, predicted, step, radius, tr: TrustRegion, min_radius, max_ra
 
 class ZState(NamedTuple):
     """What the SQP Z-step carries from one ADMM iteration to the next (ADMMState.zstate; None: start afresh, the
-    radius reset and b_i linearised anew): its trust radius (m) and b_i's linearisation (planner.safety.Safety's)."""
+    radius reset and b_i linearised anew): its trust radius (m) and b_i's linearisation (planner.safety.Lin)."""
 
     radius: float
     lin: tuple
@@ -63,97 +68,211 @@ class SQPSettings(NamedTuple):
     slack_penalty: float  # L1 price of violating a linearised b_i >= 0 (per m^2)
     slack_tol: float  # slack (m^2) above which the linearisation counts as infeasible
     reuse_radius: float  # m: b_i's linearisation is reused while the ego's planned xy stay this close to where it was taken
-    trust_region: TrustRegion = TRUST_REGION  # the step test's constants, not a tuning knob
 
 
-@lru_cache(maxsize=8)
-def constraint_pattern(n_Z, n_b):
-    """G = [I 0; mask I; 0 I] over x = [Z; s] (CSC, sorted), its (row, col, data) triplets, where the d b_i / d Z values
-    go, and which Z entries the trust region bounds (the ego's x, y); fixed per (n_Z, n_b), so built once."""
-    # b_i at step t depends on the ego's x, y at steps <= t: that lower-triangular block pattern is fixed.
-    T_p = n_Z // 4
-    t_row = np.repeat(np.arange(T_p)[None], n_b // T_p, 0).reshape(-1)
-    t_col, k_col = np.arange(n_Z) // 4, np.arange(n_Z) % 4
-    mask = (t_col[None] <= t_row[:, None]) & (k_col[None] < 2)
-    G = sparse.bmat([[sparse.eye(n_Z), None], [sparse.csc_matrix(mask.astype(float)), sparse.eye(n_b)],
-                     [None, sparse.eye(n_b)]], format="csc")
-    G.sort_indices()
-    cols = np.repeat(np.arange(G.shape[1]), np.diff(G.indptr))
-    is_b = (G.indices >= n_Z) & (G.indices < n_Z + n_b) & (cols < n_Z)
-    return G, G.indices, cols, G.data.copy(), is_b, np.tile([True, True, False, False], T_p)
+class SQP(NamedTuple):
+    """SQPSettings as the kernel reads them: numbers only (hard: mode == "hard"), the trust region's constants
+    included."""
+
+    max_iters: int
+    trust_radius: float
+    min_radius: float
+    max_radius: float
+    tol: float
+    hard: bool
+    lambda_s: float
+    slack_penalty: float
+    slack_tol: float
+    reuse_radius: float
+    trust: TrustRegion
+
+
+def sqp(s: SQPSettings) -> SQP:
+    """The kernel's SQP of SQPSettings s."""
+    return SQP(int(s.max_iters), float(s.trust_radius), float(s.min_radius), float(s.max_radius), float(s.tol),
+               s.mode == "hard", float(s.lambda_s), float(s.slack_penalty), float(s.slack_tol), float(s.reuse_radius),
+               TRUST_REGION)
+
+
+class ZData(NamedTuple):
+    """The Z-update's data for one MPC step: H = P_3 + rho C'C, Phi_3's q, C, rho, the state box lo, hi (4T_p,) and
+    which entries the trust region bounds (the ego's x, y)."""
+
+    H: np.ndarray
+    q: np.ndarray
+    C: np.ndarray
+    rho: float
+    lo: np.ndarray
+    hi: np.ndarray
+    xy: np.ndarray
+
+
+class ZKernel(NamedTuple):
+    """What sqp_update reads: the data, the SQP settings, the predictor (planner.safety.Safety.kernel's), the rows
+    (planner.safety.Rows) and the DAQP handle."""
+
+    data: ZData
+    sqp: SQP
+    pred: object
+    rows: object
+    qp: object
+
+
+class ZInfo(NamedTuple):
+    """How a Z-update ended: SQP iterations, largest slack (m^2), whether it counts as infeasible, min b_i, min
+    courtesy row, lin_offset (m: how far Z lies from where b_i was last linearised)."""
+
+    sqp_iters: int
+    slack: float
+    infeasible: bool
+    b_min: float
+    c_min: float
+    lin_offset: float
+
+
+@njit(cache=True)
+def z_start(data, mu, c_Z, Z):
+    """The Z-update's linear term Phi_3's q + C'(mu - rho c_Z) and Z^k clipped to the state box (data: ZData)."""
+    return data.q + rmatvec(data.C, mu - data.rho * c_Z), clip(Z, data.lo, data.hi)
+
+
+@njit(cache=True)
+def clip(x, lo, hi):
+    """x clipped to the box [lo, hi]."""
+    out = np.empty_like(x)
+    for i in range(len(x)):
+        out[i] = min(max(x[i], lo[i]), hi[i])
+    return out
+
+
+@njit(cache=True)
+def z_trial(x, Jb, c_lo, data, hard):
+    """The QP's solution as a trial Z (clipped to the state box, met by DAQP only to its tolerance) and the largest
+    violation of a linearised b_i row (m^2, 0 in penalty form)."""
+    slack = 0.0
+    if hard:
+        rows = matvec(Jb, x)
+        for i in range(len(rows)):
+            slack = max(slack, c_lo[i] - rows[i])
+    return clip(x, data.lo, data.hi), slack
+
+
+@njit(cache=True)
+def z_qp(lin_q, Z, b, Jb, radius, data, sqp):
+    """The SQP step's QP data at Z: linear term (penalty form: minus lambda_s sum_i d b_i / d Z), the state box cut to
+    the trust region on the ego's x, y (m), and the rows' lower bounds Jb Z - b (hard form; -INF: no row bound)."""
+    f, q_lo, q_hi = lin_q.copy(), np.empty(len(Z)), np.empty(len(Z))
+    for j in range(len(Z)):
+        if not sqp.hard:
+            f[j] -= sqp.lambda_s * Jb[:, j].sum()
+        tr = radius if data.xy[j] else INF
+        q_lo[j], q_hi[j] = max(data.lo[j], Z[j] - tr, -INF), min(data.hi[j], Z[j] + tr, INF)
+    c_lo = matvec(Jb, Z) - b if sqp.hard else np.full(len(b), -INF)
+    return f, q_lo, q_hi, c_lo
+
+
+@njit(cache=True)
+def merit(H, lin_q, Z, b, sqp):
+    """1/2 Z'HZ + lin_q'Z plus the L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
+    value = np.sum(Z * (0.5 * matvec(H, Z) + lin_q))
+    safety = 0.0
+    for i in range(len(b)):
+        safety += sqp.slack_penalty * max(0.0, -b[i]) if sqp.hard else -sqp.lambda_s * b[i]
+    return value + safety
+
+
+@njit(cache=True)
+def step_verdict(H, lin_q, Z, Z_new, b, Jb, b_new, radius, sqp):
+    """Trust-region test of a step Z -> Z_new on the merit: (accepted, next radius (m), step size (inf-norm, m))."""
+    here = merit(H, lin_q, Z, b, sqp)
+    predicted = here - merit(H, lin_q, Z_new, b + matvec(Jb, Z_new - Z), sqp)
+    actual = here - merit(H, lin_q, Z_new, b_new, sqp)
+    step = 0.0
+    for i in range(len(Z)):
+        step = max(step, abs(Z_new[i] - Z[i]))
+    accepted, radius = verdict(actual, predicted, step, radius, sqp.trust, sqp.min_radius, sqp.max_radius)
+    return accepted, radius, step
+
+
+@njit(cache=True)
+def stop_requested(signals):
+    """Whether a stop signal arrived: `signals` is core.jobs.SIGNALS, the numbers of the signals Python's handler has
+    seen since the last stop was consumed, one byte each, then zeros. A long compiled loop polls it once per iteration
+    and returns early; Python raises the stop (core.jobs.guarded) once the call has returned."""
+    for b in signals:
+        if b == 0:
+            return False
+        if b == STOPS[0] or b == STOPS[1]:
+            return True
+    return False
+
+
+@register_jitable(inline="always")
+def sqp_update(zk, cold, lin, Z, mu, c_Z, radius, fresh, signals):
+    """Z_{k+1} from Z_k by trust-region SQP (zk: ZKernel); cold: the DAQP handle's first solve this ADMM solve; fresh:
+    start afresh (radius trust_radius, b_i linearised at Z); signals: core.jobs.SIGNALS (stop_requested: the steps
+    end early). Returns (Z, radius, lin, ZInfo, DAQP's exit flag)."""
+    data, sqp = zk.data, zk.sqp
+    if fresh:
+        radius = sqp.trust_radius
+    lin_q, Z = z_start(data, mu, c_Z, Z)
+    b, Jb, lin = safety_rows(zk.pred, zk.rows, lin, Z, 0.0 if fresh else sqp.reuse_radius)
+    b_Z, slack, its, flag = b, 0.0, 0, 1
+    while its < sqp.max_iters and not stop_requested(signals):
+        its += 1
+        f, q_lo, q_hi, c_lo = z_qp(lin_q, Z, b, Jb, radius, data, sqp)
+        x, flag = daqp_qp.solve(zk.qp, cold, data.H, f, q_lo, q_hi, Jb, c_lo)
+        cold = False
+        if flag < 1:
+            break
+        Z_new, slack = z_trial(x, Jb, c_lo, data, sqp.hard)
+        b_new, Jb_new, lin, linear = trial_rows(zk.pred, zk.rows, lin, Z_new, sqp.reuse_radius)
+        accepted, radius, step = step_verdict(data.H, lin_q, Z, Z_new, b, Jb, b_new, radius, sqp)
+        if accepted:
+            Z, b_Z = Z_new, b_new
+            if step < sqp.tol:
+                break
+            if linear:  # an accepted trial linearised where it stands
+                b, Jb = b_new, Jb_new
+            else:
+                b, Jb, lin = safety_rows(zk.pred, zk.rows, lin, Z, sqp.reuse_radius)
+    b_min, c_min = np.inf, np.inf
+    for i in range(len(b_Z)):
+        if i < zk.rows.n_b:
+            b_min = min(b_min, b_Z[i])
+        else:
+            c_min = min(c_min, b_Z[i])
+    return Z, radius, lin, ZInfo(its, slack, slack > sqp.slack_tol, b_min, c_min, offset(Z, lin.ego0)), flag
+
+
+def z_update(zk, cold, lin, Z, mu, c_Z, radius, fresh, signals):
+    """The Z-update planner.admm's loop calls, sqp_update's arguments and results: from Python, sqp_update for a
+    ZKernel, else the Z-step's own `update` (zstep=pygranso: Python code, where a signal is raised as it arrives);
+    compiled (the overload below), sqp_update."""
+    if isinstance(zk, ZKernel):
+        return sqp_update(zk, cold, lin, Z, mu, c_Z, radius, fresh, signals)
+    return zk.update(cold, lin, Z, mu, c_Z, radius, fresh)
+
+
+@overload(z_update, inline="always")
+def _z_update(zk, cold, lin, Z, mu, c_Z, radius, fresh, signals):
+    return sqp_update
 
 
 class SQPZStep:
-    """argmin_Z Phi_3(Z) + mu'CZ + rho/2||CZ - c_Z||^2 s.t. box, b_i(Z) >= 0, by trust-region SQP over x = [Z; s]."""
+    """The SQP Z-step of one MPC step: its ZData, the kernel's SQP and the step's Safety."""
 
     name = "sqp"
 
-    def __init__(self, prob, safety, osqp_settings, settings: SQPSettings):
-        self.Phi_3, self.C, self.rho, self.safety, self.s = prob.Phi_3, prob.dyn.C, prob.rho, safety, settings
-        self.lo, self.hi = prob.z_lo, prob.z_hi
-        n_Z = self.C.shape[0]
-        n_b = safety.rows
-        self.n_Z, self.n_b = n_Z, n_b
-        self.H = self.Phi_3.P + self.rho * (self.C.T @ self.C)  # the exact Hessian of the smooth part
-        G, self.G_rows, self.G_cols, G_data, self.is_b, self.xy = constraint_pattern(n_Z, n_b)
-        # the slack in units of 1/sqrt(its price): its column and its price alike ~sqrt(slack_penalty), which OSQP's
-        # equilibration handles; unscaled, its multipliers ~slack_penalty took OSQP ~5x more iterations
-        self.k_s = settings.slack_penalty ** -0.5
-        self.G_data = np.where((self.G_cols >= n_Z) & (self.G_rows < n_Z + n_b), self.k_s, G_data)
-        G = sparse.csc_matrix((self.G_data, G.indices, G.indptr), shape=G.shape)
-        self.qp = QP(self.P(), np.zeros(n_Z + n_b), G, np.zeros(G.shape[0]), np.full(G.shape[0], np.inf), osqp_settings)
+    def __init__(self, prob, safety, settings: SQPSettings):
+        """The Z-step of Problem `prob` and its Safety with the SQP settings."""
+        self.safety, self.s, self.sqp = safety, settings, sqp(settings)
+        c = np.ascontiguousarray
+        self.data = ZData(c(prob.Phi_3.P + prob.rho * (prob.dyn.C.T @ prob.dyn.C)), c(prob.Phi_3.q), c(prob.dyn.C),
+                          float(prob.rho), c(prob.z_lo), c(prob.z_hi),
+                          np.tile([True, True, False, False], len(prob.z_lo) // 4))
 
-    def P(self):
-        """The QP's Hessian over x = [Z; s]: H, and nothing on the slack (priced linearly)."""
-        P = np.zeros((self.n_Z + self.n_b,) * 2)
-        P[:self.n_Z, :self.n_Z] = self.H
-        return P
-
-    def model(self, Z, lin_q):
-        """The exact quadratic part 1/2 Z'HZ + lin_q'Z."""
-        return 0.5 * Z @ (self.H @ Z) + lin_q @ Z
-
-    def merit(self, Z, lin_q, b):
-        """Quadratic part plus the safety term: L1 violation price (hard) or - lambda_s sum b_i (penalty)."""
-        if self.s.mode == "hard":
-            return self.model(Z, lin_q) + self.s.slack_penalty * np.sum(np.maximum(0.0, -b))
-        return self.model(Z, lin_q) - self.s.lambda_s * np.sum(b)
-
-    def __call__(self, Z, mu, c_Z, zstate: ZState | None = None):
-        """Z_{k+1} from Z_k and the Z-step's next ZState; info: SQP iterations, max slack, infeasible, min b_i,
-        lin_offset (m)."""
-        radius, lin = (self.s.trust_radius, None) if zstate is None else zstate
-        reuse = 0.0 if zstate is None else self.s.reuse_radius
-        lin_q = self.Phi_3.q + self.C.T @ (mu - self.rho * c_Z)
-        Z = np.clip(Z, self.lo, self.hi)
-        b, Jb, lin = self.safety.linearize(Z, lin, reuse)
-        b_Z, slack, its = b, 0.0, 0
-        for its in range(1, self.s.max_iters + 1):
-            q = np.concatenate([lin_q, np.full(self.n_b, self.s.slack_penalty * self.k_s)])
-            if self.s.mode == "penalty":
-                q[:self.n_Z] -= self.s.lambda_s * Jb.sum(0)
-            tr = np.where(self.xy, radius, np.inf)
-            b_lo = Jb @ Z - b if self.s.mode == "hard" else np.full(self.n_b, -np.inf)
-            l = np.concatenate([np.maximum(self.lo, Z - tr), b_lo, np.zeros(self.n_b)])
-            u = np.concatenate([np.minimum(self.hi, Z + tr), np.full(2 * self.n_b, np.inf)])
-            data = self.G_data.copy()
-            data[self.is_b] = Jb[self.G_rows[self.is_b] - self.n_Z, self.G_cols[self.is_b]]
-            x = self.qp.solve(q=q, l=l, u=u, Gx=data)
-            Z_new, s = np.clip(x[:self.n_Z], self.lo, self.hi), x[self.n_Z:] * self.k_s  # OSQP's box is met to its tolerance
-            slack = float(max(s.max(initial=0.0), 0.0))
-            b_new, lin = self.safety.trial(Z_new, lin, self.s.reuse_radius)
-            here = self.merit(Z, lin_q, b)
-            predicted = here - self.merit(Z_new, lin_q, b + Jb @ (Z_new - Z))
-            actual = here - self.merit(Z_new, lin_q, b_new)
-            step = float(np.max(np.abs(Z_new - Z)))
-            accepted, radius = verdict(actual, predicted, step, radius, self.s.trust_region, self.s.min_radius,
-                                       self.s.max_radius)
-            if accepted:
-                Z, b_Z = Z_new, b_new
-                if step < self.s.tol:
-                    break
-                b, Jb, lin = self.safety.linearize(Z, lin, self.s.reuse_radius)
-        return Z, ZState(radius, lin), {"sqp_iters": its, "slack": slack, "infeasible": slack > self.s.slack_tol,
-                                        "b_min": float(b_Z[:self.safety.n_b].min(initial=np.inf)),
-                                        "c_min": float(b_Z[self.safety.n_b:].min(initial=np.inf)),
-                                        "lin_offset": self.safety.offset(Z, lin)}
+    def kernel(self) -> ZKernel:
+        """This Z-step as sqp_update reads it, with the process's DAQP handle for its QPs (soft rows in the hard form)."""
+        qp = daqp_qp.shared("z", len(self.data.H), self.safety.rows, self.sqp.hard, self.sqp.slack_penalty)
+        return ZKernel(self.data, self.sqp, self.safety.kernel(), self.safety.spec, qp)

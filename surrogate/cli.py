@@ -6,7 +6,9 @@ from pathlib import Path
 import hydra
 import lightning as L
 import mlflow
+import mlflow.onnx
 import numpy as np
+import onnx
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
@@ -14,7 +16,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig
 
 from core import validate
-from core.jobs import CONF_DIR, UserError, console, guarded, mlflow_run, staged, writable
+from core.jobs import CONF_DIR, UserError, console, guarded, made_models, mlflow_run, sha256, staged, writable
 from data import dataset
 from distill.metrics import time_us
 from distill.predictors import ConstantVelocity
@@ -129,10 +131,12 @@ def run(cfg: DictConfig) -> dict:
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # the network's initialisation and batch order
     rng = np.random.default_rng(cfg.seed)
     source = instantiate_user(cfg.predictor)
+    learned = Path(cfg.models_dir) / f"{cfg.source}.ckpt"  # the planner refuses the surrogate beside any other bytes
+    learned = sha256(learned) if learned.is_file() else ""
     if cfg.fused and not hasattr(source, "module"):
         raise UserError(f"fused=true exports the source's torch network, and {cfg.source} has none: use fused=false")
     sampler = instantiate(cfg.states)
-    with mlflow_run("surrogate", cfg, run_name=f"surrogate-{cfg.source}", source=cfg.source) as run, \
+    with mlflow_run("surrogate", cfg, run_name=f"surrogate-of-{cfg.source}-seed{cfg.seed}", source=cfg.source) as run, \
             staged(cfg.models_dir) as stage:
         iterates = test_iterates = None
         if cfg.data.iterates:
@@ -161,7 +165,7 @@ def run(cfg: DictConfig) -> dict:
 
         net = net.eval()
         module = Fused(net, copy.deepcopy(source.module)) if cfg.fused else net
-        export(copy.deepcopy(module), stage / "surrogate.onnx", T_obs, M, cfg.source)
+        export(copy.deepcopy(module), stage / "surrogate.onnx", T_obs, M, cfg.source, learned)
         surrogate = models.load(stage, T_obs, M - 1)
 
         test = X["test"]
@@ -197,7 +201,12 @@ def run(cfg: DictConfig) -> dict:
         metrics.update(time_autodiff(cfg, window))
         metrics.update({"n_train": len(train[0]), "n_val": len(val[0]), "n_test": len(W)})
         mlflow.log_metrics(metrics)
-        mlflow.log_artifact(str(stage / "surrogate.onnx"))
+        made_models([stage / "surrogate.onnx"])
+        # the predictor it was trained for beside it: a runs:/<this run> models_dir is a set the planner can use whole
+        for f in (f"{cfg.source}.ckpt", "certificate.json"):
+            if (Path(cfg.models_dir) / f).exists():
+                mlflow.log_artifact(str(Path(cfg.models_dir) / f), "models")
+        mlflow.onnx.log_model(onnx.load(str(stage / "surrogate.onnx")), name="surrogate", pip_requirements=["onnxruntime"])
     path = Path(cfg.models_dir) / "surrogate.onnx"
     log.info(f"surrogate of {cfg.source} ({cfg.jacobian}) -> {path}: {len(train[0])} train windows; on {n} held-out planning "
              f"states ({'the planner iterates' if cfg.data.iterates else 'sampled'}), relative errors of the surrogate (cv, mean-J):"

@@ -7,7 +7,7 @@ figures isolate what the predictor contributes, d p_i / d Z of the other cars.
 The `ramp_*` figures score the same derivatives along plan changes the ego can drive (`ramps`: a change of speed from
 one step on) instead of along single coordinates of Z. The difference matters: a predictor reads velocities and
 accelerations, so its derivative along a zig-zag of one step is large and changes within centimetres, while along a
-ramp the teacher's first-order response matches its own rollout's (docs/studies.md, "The gradient the planner needs").
+ramp the teacher's first-order response matches its own rollout's (docs/archive/2026-11-studies.md, "The gradient the planner needs").
 """
 import numpy as np
 

@@ -21,10 +21,12 @@ def write(module, path, inputs: dict, outputs: list, metadata: dict, opset=17):
     atomic_file(path, save)
 
 
-def export(module, path, T_obs, M, source, opset=17):
-    """Write `module` (window (B, T_obs, SLOTS, 2) -> J, or (J, next) when fused) to `path` with metadata `source`."""
+def export(module, path, T_obs, M, source, source_sha256="", opset=17):
+    """Write `module` (window (B, T_obs, SLOTS, 2) -> J, or (J, next) when fused) to `path` with metadata `source` and
+    `source_sha256`, the sha256 of the source's checkpoint it learned ("": none read)."""
     window = torch.zeros(1, T_obs, M, 2)
     with torch.no_grad():
         outputs = module.float().eval()(window)
     names = ["J", "next"] if isinstance(outputs, tuple) else ["J"]
-    write(module, path, {"window": window}, names, {"source": source, "T_obs": T_obs, "M": M}, opset)
+    write(module, path, {"window": window}, names, {"source": source, "source_sha256": source_sha256, "T_obs": T_obs, "M": M},
+          opset)

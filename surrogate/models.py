@@ -5,17 +5,18 @@ import numpy as np
 import onnx
 from onnx.utils import Extractor
 
-from core.jobs import MissingModel, UserError, recover
+from core.jobs import MissingModel, UserError, model_file, recover
 from distill.export import onnx_session
 from distill.models import check_finite, probe_window
 
 
 class Surrogate:
-    """An onnxruntime session: `.jac(window)` -> J (B, SLOTS*2, T_obs*SLOTS*2) m/m float64, `.source` its teacher; a fused
-    export also `.phi(window)`, the source's next xy, each from its own half of the graph (`halves`)."""
+    """An onnxruntime session: `.jac(window)` -> J (B, SLOTS*2, T_obs*SLOTS*2) m/m float64, `.source` its teacher and
+    `.source_sha256` the sha256 of the checkpoint it learned ("": not recorded); a fused export also `.phi(window)`, the
+    source's next xy, each from its own half of the graph (`halves`)."""
 
-    def __init__(self, session, source, path, halves=None):
-        self.session, self.source, self.path = session, source, path
+    def __init__(self, session, source, path, halves=None, source_sha256=""):
+        self.session, self.source, self.path, self.source_sha256 = session, source, path, source_sha256
         self.name = "surrogate"
         self.fused = "next" in [o.name for o in session.get_outputs()]
         self.halves = halves or {"J": session}  # output name -> the session that computes it alone
@@ -57,16 +58,18 @@ def load(models_dir, T_obs, n_slots):
     if not path.exists():
         raise MissingModel(f"{path} not found: run `surrogate`")
     expected = f"expected window (B, {T_obs}, {M}, 2) -> J (B, {2 * M}, {2 * T_obs * M})"
-    session = onnx_session(path, f"{expected}; re-run `surrogate`")
+    session = onnx_session(model_file(path), f"{expected}; re-run `surrogate`")
     inputs = {i.name: i.shape[1:] for i in session.get_inputs()}
     outputs = {o.name: o.shape[1:] for o in session.get_outputs()}
     if inputs != {"window": [T_obs, M, 2]} or outputs.get("J") != [2 * M, 2 * T_obs * M] or \
             outputs.get("next", [M, 2]) != [M, 2]:
         raise UserError(f"{path} has inputs {inputs} and outputs {outputs}; {expected}; re-run `surrogate`")
-    source = session.get_modelmeta().custom_metadata_map.get("source")
+    meta = session.get_modelmeta().custom_metadata_map
+    source = meta.get("source")
     if not source:
         raise UserError(f"{path} does not record the predictor it learned (ONNX metadata `source`); re-run `surrogate`")
-    surrogate = Surrogate(session, source, path, halves(path, f"{expected}; re-run `surrogate`") if "next" in outputs else None)
+    surrogate = Surrogate(session, source, path, halves(path, f"{expected}; re-run `surrogate`") if "next" in outputs else None,
+                          meta.get("source_sha256", ""))
     window = probe_window(T_obs, M)
     check_finite(surrogate.phi_jac(window) if surrogate.fused else (surrogate.jac(window),), path, "re-run `surrogate`")
     return surrogate

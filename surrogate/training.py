@@ -77,7 +77,7 @@ class SurrogateModule(L.LightningModule):
         """Squared relative error of the composed reaction along ramps (surrogate.evaluate), pooled over the batch's
         states (dimensionless): the error the planner sees, where a local error early in the horizon is carried through
         every later step. Pooled, not per state: each state's own relative error diverges on the states where the plan
-        barely moves anyone (docs/studies.md, "The reaction where there is one")."""
+        barely moves anyone (docs/archive/2026-11-studies.md, "The reaction where there is one")."""
         e, t = along_ramps(self.reaction(windows) - target), along_ramps(target)
         return e.square().sum() / t.square().sum().clamp_min(1e-12)
 

@@ -7,6 +7,11 @@ from hydra import compose, initialize_config_dir
 
 from core.jobs import CONF_DIR
 
+# A certificate's feature region (m, m/s, m/s^2 per step) and its global position box (m) for small random students.
+REGION = {"rel_x": [-8.0, 12.0], "rel_y": [-1.0, 5.0], "vel_x": [0.8, 1.2], "vel_y": [-0.05, 0.1],
+          "acc_x": [-0.004, 0.004], "acc_y": [-0.002, 0.003]}
+BOX = {"x": 60.0, "y": 12.0, "dx": 2.5, "dy": 0.6}
+
 
 def compose_cfg(config_name: str, overrides=()):
     """A Hydra config composed the way the console scripts compose it."""

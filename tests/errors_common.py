@@ -11,10 +11,10 @@ BIN = Path(sys.executable).parent  # the venv's console scripts
 REPO = Path(__file__).resolve().parents[1]
 
 
-def job(args, cwd, env=None, timeout=120, **kwargs):
+def job(args, cwd, env=None, **kwargs):
     """Run a console script of the venv in `cwd` (its MLflow store in `env`); returns the CompletedProcess."""
     return subprocess.run([str(BIN / args[0]), *args[1:]], cwd=cwd, env={**os.environ, **(env or {})}, capture_output=True,
-                          text=True, timeout=timeout, **kwargs)
+                          text=True, **kwargs)
 
 
 def error_lines(stderr: str) -> list[str]:

@@ -39,7 +39,7 @@ def test_a_candidates_windows_are_the_worlds_answer_to_its_plan(tmp_path, capsys
         if k % EVERY == 0:  # the states whose candidates the job drew: all of them, in the strategy's order
             obs = mpc.Observation(world.states()[0], controls[k - 1] if k else np.zeros(2),
                                   observe(world, pc.n_slots, pc.T_obs).history)
-            _, Delta, _, Z = s.strategy.plans(s, obs, None)
+            _, Delta, _, Z = s.strategy.open_loop.plans(s, obs, None)
             plans.append(Z.reshape(*Delta.shape, 4)[:, :, :2])
         if k < EVERY:
             world.step(u)

@@ -6,17 +6,13 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from conftest import compose_cfg
+from conftest import BOX, REGION, compose_cfg
 from core.jobs import UserError, options
 from data.bicycle import linearize
 from distill import certificate
 from distill.models import StudentPredictor, TorchPredictor
 from distill.student import GeluStudent
 from distill.train import scenario_configs
-
-REGION = {"rel_x": [-8.0, 12.0], "rel_y": [-1.0, 5.0], "vel_x": [0.8, 1.2], "vel_y": [-0.05, 0.1],
-          "acc_x": [-0.004, 0.004], "acc_y": [-0.002, 0.003]}
-BOX = {"x": 60.0, "y": 12.0, "dx": 2.5, "dy": 0.6}
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from core import validate
-from core.jobs import UserError
+from core.jobs import UserError, sha256
 from planner.setup import build, planner_config, settings
 
 
@@ -17,7 +17,9 @@ def mpc_settings(scenario, *overrides):
 
 
 def test_certified_rho_is_the_certificates_bound_for_the_scenario(tmp_path):
-    doc = {"scenarios": {"two_lane": {"rho_bound": 1.25e8}, "three_lane": {"rho_bound": 3.5e9}}}
+    (tmp_path / "student.ckpt").write_bytes(b"the weights it certifies")
+    doc = {"scenarios": {"two_lane": {"rho_bound": 1.25e8}, "three_lane": {"rho_bound": 3.5e9}},
+           "certifies": {"student.ckpt": sha256(tmp_path / "student.ckpt")}}
     (tmp_path / "certificate.json").write_text(json.dumps(doc))
     over = ("mpc.admm.rho=certified", f"models_dir={tmp_path}")
     assert mpc_settings("two_lane", *over).admm.rho == 1.25e8
@@ -37,5 +39,5 @@ def test_missing_certificate_and_bad_rho_fail_in_one_line(tmp_path):
         mpc_settings("two_lane", "mpc.admm.rho=certify")
     with pytest.raises(UserError, match=r"^mpc.admm.rho=-1.0: must be"):
         mpc_settings("two_lane", "mpc.admm.rho=-1.0")
-    with pytest.raises(UserError, match=r"^mpc.weights.lambda_v=-1.0: must be"):  # the keys beside it still checked
-        mpc_settings("two_lane", "mpc.weights.lambda_v=-1.0")
+    with pytest.raises(UserError, match=r"^paper.cost.lambda_v=-1.0: must be"):  # the keys beside it still checked
+        mpc_settings("two_lane", "paper.cost.lambda_v=-1.0")

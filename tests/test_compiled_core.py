@@ -1,6 +1,6 @@
-"""The compiled core (mpc.admm.core=compiled: numba kernels, DAQP) gives the reference core's plans (numpy, OSQP solved
-tight) on saved planning states for every source it runs, and its compiled rollouts, network Jacobians and b_i
-gradients match the reference maths and central differences."""
+"""The ADMM solve's kernels: the compiled rollouts, network Jacobians and b_i gradients against the reference maths
+(core.rollout) and central differences, DAQP called from numba against daqp's own Model and an explicit slack QP, and
+the one-call compiled solve against the same loop run from Python."""
 import gc
 import weakref
 
@@ -12,19 +12,16 @@ from test_surrogate import smooth_student
 
 from bench.states import collect, solver_step
 from core.rollout import SLOTS, T_OBS, accelerations, b_i, b_i_jacobian, courtesy_jacobian, ego_xy, rollout_jacobian
+from distill import student
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner import daqp_qp, jit_rollout, jit_zstep, mpc
-from planner.daqp_qp import SoftQP
+from planner import daqp_qp, jit_rollout, safety
 from planner.gradients import ExactLocal, Surrogate
 from planner.qp import QP, SolverFailure
-from planner.setup import drive, make, planner_config, setup
+from planner.setup import make
 from surrogate import models
 from surrogate.export import export
 from surrogate.network import Fused, JacobianNet
-
-TIGHT = ("mpc.admm.osqp.eps_abs=1e-7", "mpc.admm.osqp.eps_rel=1e-7", "mpc.admm.osqp.max_iter=20000")  # the reference's QPs near exact
-U_TOL, Z_TOL = 5e-3, 1e-2  # rad or m/s^2, and m: a few times ADMM's tol_step (1e-3), where both converged
 
 
 @pytest.fixture(scope="module")
@@ -54,50 +51,6 @@ SOURCES = {"cv": lambda tmp: ExactLocal("cv", ConstantVelocity()), "analytic": l
            "student": lambda tmp: student_source(), "surrogate": surrogate_source}
 
 
-@pytest.mark.parametrize("name", list(SOURCES))
-def test_compiled_step_gives_the_reference_plan(name, states, tmp_path):
-    src = SOURCES[name](tmp_path)
-    compiled = make("two_lane", ["gradients=analytic", "mpc.admm.core=compiled"])[2]
-    reference = make("two_lane", ["gradients=analytic", "mpc.admm.core=reference", *TIGHT])[2]
-    both = 0
-    for st in states:
-        a, b = solver_step()(compiled, st.obs, src, st.warm), solver_step()(reference, st.obs, src, st.warm)
-        if "converged" in (a.reason, b.reason):  # unconverged (max_iters) runs end anywhere: only converged ones compare
-            assert a.reason == b.reason == "converged"
-            both += 1
-            assert np.abs(a.u - b.u).max() <= U_TOL and np.abs(a.plan.Z - b.plan.Z).max() <= Z_TOL
-            assert abs(a.J - b.J) <= 1e-3 * max(abs(b.J), 1.0)
-    assert both >= 3
-
-
-@pytest.mark.parametrize("name", ["cv", "analytic"])
-def test_the_cores_take_the_same_iteration_before_they_converge(name, states, tmp_path):
-    """The first four ADMM iterations, long before convergence, each from the same iterate (the reference's) in both
-    cores (cv: the one-call solve; analytic: its kernels driven from Python): the same trust radius always, and the same
-    iterate wherever the linearised rows can be met (no slack paid), so the cores share the trust-region test and its
-    constants, not only the fixed points they converge to. (Where slack is paid the two soft-row QPs part: DAQP's soft
-    rows and OSQP's elastic slack price a violation differently.)"""
-    src = SOURCES[name](tmp_path)
-    cores = (make("two_lane", ["gradients=analytic", "mpc.admm.core=compiled"])[2],
-             make("two_lane", ["gradients=analytic", "mpc.admm.core=reference", *TIGHT])[2])
-    zstep = solver_step().keywords["zstep"]
-    radii, compared = set(), 0
-    for st in states:
-        built = [mpc.build(s, st.obs, src, st.warm, zstep) for s in cores]
-        it = built[1][2]
-        for _ in range(4):
-            (a, out_a), (b, out_b) = (s.core.solve(prob, solvers, it, 1, 1e-12, 1e-12)
-                                      for s, (prob, solvers, _) in zip(cores, built))
-            assert out_a.reason == out_b.reason == "max_iters" and a.zstate.radius == b.zstate.radius
-            radii.add(b.zstate.radius)
-            if max(out_a.zinfo["slack"], out_b.zinfo["slack"]) < 1e-6:
-                compared += 1
-                assert max(np.abs(x - y).max() for x, y in zip(a[:3], b[:3])) < 1e-4  # Delta, alpha, Z
-                assert np.abs(a.mu - b.mu).max() < 1e-3 * built[1][0].rho  # mu moves by rho F: rho times a few Z errors
-            it = b
-    assert compared >= 24 and len(radii) > 1  # most iterations compared; the radius grown or cut on the way
-
-
 @pytest.mark.parametrize("name", ["cv", "student"])
 def test_compiled_rollout_equals_the_reference_chain_rule(name, states):
     src = SOURCES[name](None)
@@ -112,10 +65,10 @@ def test_compiled_student_jacobian_matches_central_differences(states):
     pred = StudentPredictor(smooth_student())
     Ws, bs, _ = jit_rollout.compiled_params(ExactLocal("student", pred))
     window = np.ascontiguousarray(states[3].obs.history)
-    _, J = jit_rollout.student_phi_jac(Ws, bs, pred.s, window)
+    _, J = student.phi_jac(Ws, bs, pred.s, window)
     h, flat = 1e-5, window.reshape(-1)
-    fd = np.stack([(jit_rollout.student_phi_jac(Ws, bs, pred.s, (flat + h * e).reshape(window.shape))[0]
-                    - jit_rollout.student_phi_jac(Ws, bs, pred.s, (flat - h * e).reshape(window.shape))[0]).reshape(-1) / (2 * h)
+    fd = np.stack([(student.phi_jac(Ws, bs, pred.s, (flat + h * e).reshape(window.shape))[0]
+                    - student.phi_jac(Ws, bs, pred.s, (flat - h * e).reshape(window.shape))[0]).reshape(-1) / (2 * h)
                    for e in np.eye(flat.size)], axis=1)
     assert np.abs(J[2:]).max() > 1e-3 and np.abs(J - fd).max() < 1e-6
 
@@ -175,7 +128,7 @@ def test_soft_qp_prices_violations_like_the_explicit_slack_qp():
     H, f, A = L @ L.T + n * np.eye(n), rng.normal(size=n), rng.normal(size=(m, n))
     lo, hi = -np.ones(n), np.ones(n)
     c_lo = np.array([20.0, -1.0, 0.5, 30.0])  # rows 0 and 3 out of reach in the box: violated at a price
-    x = SoftQP(H, price, True, m).solve(f, lo, hi, A, c_lo)
+    x = daqp_qp.optimal(*daqp_qp.solve(daqp_qp.handle(n, m, True, price), True, H, f, lo, hi, A, c_lo))
     P = np.block([[H, np.zeros((n, m))], [np.zeros((m, n)), np.zeros((m, m))]])
     G = np.block([[np.eye(n), np.zeros((n, m))], [A, np.eye(m)], [np.zeros((m, n)), np.eye(m)]])
     tight = {"eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 200000, "polishing": True}
@@ -185,21 +138,6 @@ def test_soft_qp_prices_violations_like_the_explicit_slack_qp():
     assert np.abs(x - want[:n]).max() < 1e-5
 
 
-def test_compiled_closed_loop_drives_the_reference_episode_with_cv():
-    """Table II's two_lane merge with constant velocity, whose steps converge: the same episode, step for step. (With
-    steps that stop at max_iters, as the trained predictors' often do, episodes part as they do when only OSQP's
-    tolerance changes: there the batch statistics compare.)"""
-    episodes = []
-    for core in ("compiled", "reference"):
-        cfg = planner_config("two_lane", ["gradients=cv", "method=admm", f"mpc.admm.core={core}", *TIGHT])
-        scenario, src, s = setup(cfg)
-        episodes.append(drive(cfg, scenario, src, s, "admm"))
-    a, b = episodes
-    assert len(a.controls) == len(b.controls) and not a.collided and not b.collided
-    assert np.abs(a.controls - b.controls).max() <= U_TOL
-    assert [bool(r["fallback"]) for r in a.rows] == [bool(r["fallback"]) for r in b.rows]
-
-
 def test_daqp_called_from_numba_solves_as_daqp_model_warm_started():
     """planner.daqp_qp's C calls (its own struct layouts) against daqp's Python Model on one sequence of soft-row QPs,
     the second and later solves warm-started from the last working set in both."""
@@ -207,7 +145,7 @@ def test_daqp_called_from_numba_solves_as_daqp_model_warm_started():
     n, m, price = 16, 12, 1e3
     L = rng.normal(size=(n, n))
     H = L @ L.T + n * np.eye(n)
-    mine, model = SoftQP(H, price, True, m), daqp.Model()
+    mine, model = daqp_qp.handle(n, m, True, price), daqp.Model()
     sense = np.concatenate([np.zeros(n), np.full(m, daqp_qp.SOFT)]).astype(np.int32)
     for k in range(20):
         f, A, c_lo = 10 * rng.normal(size=n), rng.normal(size=(m, n)), 3 * rng.normal(size=m)
@@ -219,24 +157,27 @@ def test_daqp_called_from_numba_solves_as_daqp_model_warm_started():
         else:
             model.update(f=f, A=A, bupper=bu, blower=bl)
         want, _, flag, _ = model.solve()
-        assert flag >= 1 and np.abs(mine.solve(f, -np.ones(n), np.ones(n), A, c_lo) - want).max() < 1e-9
+        x, mine_flag = daqp_qp.solve(mine, k == 0, H, f, -np.ones(n), np.ones(n), A, c_lo)
+        assert flag >= 1 and mine_flag >= 1 and np.abs(x - want).max() < 1e-9
 
 
 def test_a_failed_daqp_solve_is_a_solver_failure():
     """An infeasible hard row (c_lo above what the box allows) is DAQP's exit flag, raised as the planner's SolverFailure."""
-    qp = SoftQP(np.eye(2), 1.0, False, 1)
+    qp = daqp_qp.handle(2, 1)
     with pytest.raises(SolverFailure, match="DAQP exit flag"):
-        qp.solve(np.zeros(2), -np.ones(2), np.ones(2), np.ones((1, 2)), np.array([5.0]))
+        daqp_qp.optimal(*daqp_qp.solve(qp, True, np.eye(2), np.zeros(2), -np.ones(2), np.ones(2), np.ones((1, 2)),
+                                       np.array([5.0])))
 
 
 @pytest.mark.parametrize("name", ["cv", "student"])
 def test_one_call_admm_solve_equals_the_same_kernels_driven_from_python(name, states, tmp_path, monkeypatch):
-    """The compiled predictors' one-call ADMM solve (jit_admm.admm_loop) and the Python-driven loop over the same kernels
-    (taken when the safety has no compiled predictor) give the same iterates to rounding, step for step."""
+    """The compiled predictors' one-call ADMM solve (planner.admm.admm_loop compiled) and the same loop run from Python
+    over the same kernels (taken when the safety has no compiled predictor) give the same iterates to rounding, step
+    for step."""
     src = SOURCES[name](tmp_path)
-    s = make("two_lane", ["gradients=analytic", "mpc.admm.core=compiled"])[2]
+    s = make("two_lane", ["gradients=analytic"])[2]
     one_call = [solver_step()(s, st.obs, src, st.warm) for st in states]
-    monkeypatch.setattr(jit_zstep, "compiled_params", lambda source: None)  # the same compiled rollouts, called from Python
+    monkeypatch.setattr(safety, "compiled_params", lambda source: None)  # the same compiled rollouts, called from Python
     driven = [solver_step()(s, st.obs, src, st.warm) for st in states]
     for a, b in zip(one_call, driven):
         assert (a.reason, a.iters, a.fallback) == (b.reason, b.iters, b.fallback)
@@ -245,8 +186,8 @@ def test_one_call_admm_solve_equals_the_same_kernels_driven_from_python(name, st
 
 
 def test_a_dropped_daqp_workspace_is_released():
-    """A handle's workspace is freed with it: nothing (its finaliser included) keeps it alive, so a long batch that
-    builds Z-steps from Python does not grow without bound."""
+    """A handle's workspace is freed with it: nothing (its finaliser included) keeps it alive, so a process that sets
+    up handles does not grow without bound."""
 
     h = daqp_qp.handle(4, 2, True, 1.0)
     work = weakref.ref(h.work)

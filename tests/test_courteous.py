@@ -12,7 +12,7 @@ from core.rollout import b_i
 from planner import admm, mpc, safeguard, step
 from planner.safety import Safety
 from planner.setup import make
-from planner.strategy import Paper, Start
+from planner.strategy import FOLLOWER, Paper, Start
 
 
 @pytest.fixture(scope="module")
@@ -31,11 +31,11 @@ def test_repair_turns_a_miss_of_centimetres_into_a_plan_that_passes_with_the_lea
     s, source, obs = beside
     Delta, alpha = np.full(s.T_p, steer), np.zeros(s.T_p)  # drifting at the car beside
     b_min, Z = safeguard.plan_safe(s, obs, source, Delta, alpha)
-    assert -0.5 < b_min < -s.safeguard.check_tol  # 2.1 m across: 0.5 m^2 is 12 cm
+    assert -0.5 < b_min < -safeguard.CHECK_TOL  # 2.1 m across: 0.5 m^2 is 12 cm
     fixed, b_fixed, _ = safeguard.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
                                   admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
     assert b_fixed == pytest.approx(safeguard.plan_safe(s, obs, source, fixed.Delta, fixed.alpha)[0])
-    assert b_fixed >= s.safeguard.repair_margin - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
+    assert b_fixed >= safeguard.REPAIR_MARGIN - 0.05 and np.allclose(fixed.Z, mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params))
     assert 0.0 < np.abs(fixed.Delta - Delta).max() < 0.15 and fixed.Delta[0] < steer  # steered a little less
     safe = np.full(s.T_p, -0.1)  # steering away: a plan that passes is left alone
     b_safe, Z = safeguard.plan_safe(s, obs, source, safe, alpha)
@@ -104,7 +104,6 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
     in_lane = Z.reshape(-1, 4).copy()
     in_lane[:, 1] = 1.8  # the same plan leaning, not entering: nobody follows it
     assert s.strategy.follower_braking(s, obs, in_lane.ravel(), values) == 0.0
-    assert replace(s.strategy, follower=None).follower_braking(s, obs, Z, values) == 0.0
     leaving = values.copy()
     leaving[:, 1, 1] = 1.9  # predicted out of the lane already; last seen in the lane the plan enters, so it still counts
     assert s.strategy.follower_braking(s, obs, Z, leaving) == pytest.approx(want, rel=1e-9)  # (the world has a car changing
@@ -116,16 +115,7 @@ def test_the_nominal_follower_brakes_as_idm_behind_a_plan_that_enters_its_lane_a
 
 def test_the_nominal_follower_is_no_more_tolerant_than_any_dense_driver_on_headway_and_gap():
     ranges = compose_cfg("planner", ["scenario=dense"]).scenario.driver_ranges
-    follower = make("dense", ["gradients=cv", "mpc=courteous"])[2].strategy.driver
-    assert (follower.T, follower.s0) == (max(ranges.T), max(ranges.s0))
-
-
-@pytest.mark.parametrize("override,message", [
-    ("+mpc.strategy.follower.Tau=1", r"^mpc.strategy.follower.Tau: IDMDriver has no such "),
-    ("mpc.strategy.follower.T=nan", r"^mpc.strategy.follower.T=nan: must be a finite number")])
-def test_a_bad_nominal_follower_parameter_is_named_in_one_line(override, message):
-    with pytest.raises(UserError, match=message):
-        make("dense", ["gradients=cv", "mpc=courteous", override])
+    assert (FOLLOWER.T, FOLLOWER.s0) == (max(ranges.T), max(ranges.s0))
 
 
 def _stream(s, back_x, back_v, back_a, front_v=5.0):
@@ -143,7 +133,7 @@ def _stream(s, back_x, back_v, back_a, front_v=5.0):
     (-3.0, 3.0, -2.0, 4.2),  # braking for the ego: the lean aims at its speed over the last step (3.2 m/s) + 1 m/s
     (-3.0, 4.0, 0.0, 5.0),  # 1 m/s slower than the car ahead: yielding too
     (-3.0, 5.0, 0.0, None),  # with the stream: let it pass, at the lean's own speed
-    (-8.0, 3.0, -2.0, None),  # braking, but beyond keep_ahead.near (6 m)
+    (-8.0, 3.0, -2.0, None),  # braking, but beyond KEEP_AHEAD.near (6 m)
 ])
 def test_a_lean_beside_a_car_seen_yielding_keeps_ahead_of_it_and_otherwise_keeps_its_speed(beside, back_x, back_v, back_a, v_lean):
     s = beside[0]
@@ -159,7 +149,7 @@ def test_a_courteous_step_reports_its_solve_and_the_paper_step_has_none_of_it(be
     assert result.fallback == "" and ", from " in result.reason and result.c_min >= 0.0  # cv predicts no braking at all
     assert result.braking == 0.0
     paper = make("two_lane", ["gradients=cv"])[2]
-    assert paper.b_courtesy is None and paper.safeguard.repair_iters == 0 and len(paper.strategy.candidates(paper, obs, None, None)) == 1
+    assert paper.b_courtesy is None and paper.repair_iters == 0 and len(paper.strategy.candidates(paper, obs, None, None)) == 1
     assert "from" not in step.mpc_step(paper, obs, source, None, _sqp()).reason
 
 
@@ -227,16 +217,51 @@ def test_a_start_that_is_not_offset_acceleration_speed_is_one_line(starts):
 
 
 @pytest.mark.parametrize("override,message", [
-    ("mpc.safeguard.repair_iters=-1", "mpc.safeguard.repair_iters=-1: must be an integer >= 0"),
+    ("mpc.repair_iters=-1", "mpc.repair_iters=-1: must be an integer >= 0"),
     ("mpc.b_courtesy=-2", "mpc.b_courtesy=-2: must be a number > 0 or null"),
     ("mpc.b_courtesy=nan", "mpc.b_courtesy=nan: must be a number > 0 or null"),
-    ("mpc.safeguard.repair_margin=-0.1", "mpc.safeguard.repair_margin=-0.1: must be a number >= 0"),
-    ("mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"),
-    ("mpc.safeguard.check_relative=1", "mpc.safeguard.check_relative=1: must be true or false"),
-    ("mpc.admm.core=fast", "mpc.admm.core=fast: must be one of compiled, reference"),
-    ("mpc.strategy.progress=-1", "mpc.strategy.progress=-1: must be a number >= 0"),
-    ("mpc.strategy.keep_ahead.near=nan", "mpc.strategy.keep_ahead.near=nan: must be a number >= 0"),
+    ("mpc.T_p=0", "mpc.T_p=0: must be an integer in [1, 200]"),
 ])
 def test_every_bad_value_of_the_step_is_one_line_naming_its_key(override, message):
     with pytest.raises(UserError, match="^" + re.escape(message) + "$"):
         make("dense", ["gradients=cv", "mpc=courteous", override])
+
+
+@pytest.fixture(scope="module")
+def clear_road():
+    """mpc=courteous settings and cv on two_lane, the ego alone in lane 0 at 5 m/s, every other car far ahead."""
+    _, source, s = make("two_lane", ["gradients=cv", "mpc=courteous"])
+    z0 = np.array([0.0, 0.0, 0.0, 5.0])
+    cars = np.array([[200.0, 4.0], [230.0, 4.0], [260.0, 4.0], [290.0, 4.0]])
+    history = np.stack([np.vstack([z0[:2], cars]) - [5.0 * 0.2 * k, 0.0] for k in range(7, -1, -1)])
+    return s, source, mpc.Observation(z0, np.zeros(2), history)
+
+
+def test_a_plan_whose_car_yaws_beyond_what_the_safety_shape_covers_is_refused_then_repaired_within_it(clear_road):
+    s, source, obs = clear_road
+    Delta, alpha = np.full(s.T_p, 0.45), np.zeros(s.T_p)  # a hard left turn: far from any car, far beyond psi_box
+    b_min, Z = safeguard.plan_safe(s, obs, source, Delta, alpha)
+    psi = Z[2::4][:safeguard.CHECK_STEPS]
+    assert b_min > 0 and psi.max() > s.psi_box[1] + 0.05  # b_i alone would pass it
+    assert safeguard.yaw_excess(s, Z) == pytest.approx(psi.max() - s.psi_box[1])
+    result, why = step.offered(s, obs, source, mpc.planned(s, obs.z0, Delta, alpha))
+    assert result is None and re.search(r"yaw 0\.\d\d rad beyond mpc\.psi_box", why)
+    fixed, _, _ = safeguard.repaired(s, obs, source, Safety(source, obs.history, s.R, s.T_p, stretch=s.stretch, p=s.shape),
+                                     admm.ADMMState(Delta, alpha, Z, np.zeros(4 * s.T_p)))
+    rolled = mpc.simulate(obs.z0, fixed.Delta, fixed.alpha, s.params)  # the bicycle itself, not the repair's linearisation
+    assert np.abs(rolled[2::4][:safeguard.CHECK_STEPS]).max() <= s.psi_box[1] + safeguard.YAW_TOL
+
+
+def test_the_paper_s_ellipse_leaves_the_yaw_to_its_config(clear_road):
+    s, source, obs = clear_road
+    Z = mpc.simulate(obs.z0, np.full(s.T_p, 0.45), np.zeros(s.T_p), s.params)
+    assert safeguard.yaw_excess(replace(s, shape=2.0), Z) == 0.0 < safeguard.yaw_excess(s, Z)
+
+
+def test_courtesy_rows_end_once_the_ego_is_wholly_inside_the_target_lane(clear_road):
+    s, _, _ = clear_road
+    lane_y, margin = s.lane_y, (s.road.lane_width - s.road.car_width) / 2
+    assert mpc.courtesy(s, [0.0, 0.0, 0.0, 5.0]) == (s.params.dt, s.b_courtesy)  # still in its own lane
+    assert mpc.courtesy(s, [0.0, lane_y - margin - 0.05, 0.0, 5.0]) is not None  # a wheel still over the line
+    assert mpc.courtesy(s, [0.0, lane_y - margin + 0.05, 0.0, 5.0]) is None
+    assert mpc.courtesy(replace(s, b_courtesy=None), [0.0, 0.0, 0.0, 5.0]) is None

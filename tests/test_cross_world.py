@@ -17,6 +17,7 @@ TINY = ["dataset=tiny", 'teacher=["trainer.max_epochs=1"]', 'student=["trainer.m
         'ceiling=["max_steps=5","search.gaps=0","search.y_lean=[1.95]","search.clearance=[0.5]","search.enter=[4]","search.dv=[0.0]"]']
 
 
+@pytest.mark.slow  # a tiny cross-world run: two datasets, four trainings, both worlds' batches
 def test_tiny_run_plans_in_both_worlds_with_models_of_both_and_reports_the_episodes(tmp_path):
     path = cross_world.run(compose_cfg("cross_world", [*TINY, f"out_dir={tmp_path}", f"work_dir={tmp_path / 'work'}"]))
     md = path.read_text()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from conftest import TINY_TEACHER_EPOCHS, compose_cfg
-from core.jobs import UserError
+from core.jobs import UserError, sha256
 from data import dataset
 from distill import models
 from distill.export import load_onnx
@@ -30,8 +30,8 @@ def trained(tiny_models):
 
 def test_tiny_teacher_beats_constant_velocity(trained):
     _, r, _, _ = trained
-    assert r["ade_1step_m"] < r["cv_ade_1step_m"]
-    assert r["ade_rollout_m"] < r["cv_ade_rollout_m"]
+    assert r["ade_1step_m"] < r["ade_1step_m_cv"]
+    assert r["ade_rollout_m"] < r["ade_rollout_m_cv"]
     assert 1e5 <= r["params"] <= 1e6
 
 
@@ -41,6 +41,7 @@ def test_student_job_certifies_and_logs(trained):
     for k in ("s_x", "s_y", "theta_x", "theta_y", "L", "rho_bound", "rho_used"):
         assert np.isfinite(doc["constants_m"][k]) and doc["constants_m"][k] > 0
     assert doc["sampled"]["emp_samples"] >= 1500
+    assert doc["certifies"] == {f: sha256(models_dir / f) for f in ("student.ckpt", "student.onnx")}  # the weights it holds for
     runs = mlflow.search_runs(experiment_names=["distill"], filter_string="params.model = 'student'")
     names = ("ade_1step_m", "ade_rollout_m", "fde_rollout_m", "jac_rel_err", "params", "forward_us", "cert_s_x",
              "cert_s_y", "cert_theta_x", "cert_theta_y", "cert_L", "cert_rho_bound", "emp_theta_max", "emp_L_max",

@@ -18,30 +18,45 @@ from planner.setup import check_window, planner_config
 
 
 @pytest.mark.parametrize("config,override,message", [
-    ("planner", "paper.T_p=-3", "paper.T_p=-3: must be an integer >= 1"),
-    ("planner", "paper.T_p=0", "paper.T_p=0: must be an integer >= 1"),
-    ("planner", "mpc.T_p=0", "mpc.T_p=0: must be an integer >= 1"),
+    ("planner", "paper.T_p=-3", "paper.T_p=-3: must be an integer in [1, 200]"),
+    ("planner", "paper.T_p=0", "paper.T_p=0: must be an integer in [1, 200]"),
+    ("planner", "mpc.T_p=0", "mpc.T_p=0: must be an integer in [1, 200]"),
     ("planner", "paper.rho=abc", "paper.rho=abc: must be a number > 0"),
     ("planner", "paper.rho=-5", "paper.rho=-5: must be a number > 0"),
     ("planner", "mpc.admm.rho=0", "mpc.admm.rho=0: must be a number > 0"),
     ("planner", "T_obs=1", "T_obs=1: must be an integer in [2, 21]"),
     ("planner", "seed=-1", "seed=-1: must be an integer in [0, 4294967295]"),
-    ("planner", "max_steps=0", "max_steps=0: must be an integer >= 1"),
-    ("planner", "episodes=-2", "episodes=-2: must be an integer >= 0"),
-    ("planner", "n_jobs=0", "n_jobs=0: must be an integer >= -1, not 0"),
+    ("planner", "max_steps=0", "max_steps=0: must be an integer in [1, 10000]"),
+    ("planner", "episodes=-2", "episodes=-2: must be an integer in [0, 100000]"),
+    ("planner", "n_jobs=0", f"n_jobs=0: must be an integer in [-1, {validate.CORES}], not 0"),
     ("planner", "world=dream", "world=dream: must be one of reactive, predictor"),
     ("planner", "mpc.v_box=[10,0]", "mpc.v_box=[10, 0]: must be [low, high] with low < high"),
-    ("planner", "zstep.settings.max_iters=0", "zstep.settings.max_iters=0: must be an integer >= 1"),
+    ("planner", "zstep.settings.max_iters=0", "zstep.settings.max_iters=0: must be an integer in [1, 10000]"),
     ("planner", "paper.safety.eps=-1", "paper.safety.eps=-1: must be a number >= 0"),
     ("planner", "plots=maybe", "plots=maybe: must be true or false"),
-    ("make_dataset", "dataset.episodes=abc", "dataset.episodes=abc: must be an integer >= 1"),
+    # sizes where memory or time would explode: a T_p of 1000 never returned from its first ADMM call
+    ("planner", "mpc.T_p=201", "mpc.T_p=201: must be an integer in [1, 200]"),
+    ("planner", "paper.T_p=1000", "paper.T_p=1000: must be an integer in [1, 200]"),
+    ("planner", "mpc.admm.max_iters=100000", "mpc.admm.max_iters=100000: must be an integer in [1, 10000]"),
+    ("planner", "zstep.settings.max_iters=100000", "zstep.settings.max_iters=100000: must be an integer in [1, 10000]"),
+    ("planner", "episodes=1000000", "episodes=1000000: must be an integer in [0, 100000]"),
+    ("planner", "max_steps=100000", "max_steps=100000: must be an integer in [1, 10000]"),
+    ("planner", f"n_jobs={validate.CORES + 1}", f"n_jobs={validate.CORES + 1}: must be an integer in [-1, {validate.CORES}], not 0"),
+    ("planner", "n_slots=1000", "n_slots=1000: must be an integer in [1, 50]"),
+    ("make_dataset", "dataset.episodes=1000000", "dataset.episodes=1000000: must be an integer in [1, 100000]"),
+    ("make_dataset", "dataset.steps=100000", "dataset.steps=100000: must be an integer in [2, 10000]"),
+    ("make_dataset", "dataset.T_obs=1000", "dataset.T_obs=1000: must be an integer in [2, 21]"),
+    ("make_dataset", "dataset.n_slots=1000", "dataset.n_slots=1000: must be an integer in [1, 50]"),
+    ("surrogate", "data.plan_states=10000000", "data.plan_states=10000000: must be an integer in [1, 1000000]"),
+    ("surrogate", "states.T_p=1000", "states.T_p=1000: must be an integer in [1, 200]"),
+    ("make_dataset", "dataset.episodes=abc", "dataset.episodes=abc: must be an integer in [1, 100000]"),
     ("make_dataset", "dataset.split=[0.5,0.5,0.1]", "dataset.split=[0.5, 0.5, 0.1]: must be 3 fractions in (0, 1) summing to 1"),
     ("make_dataset", "dataset.policy.p_reckless=1.5", "dataset.policy.p_reckless=1.5: must be a number in [0, 1]"),
     ("distill", "trainer.max_epochs=abc", "trainer.max_epochs=abc: must be an integer >= 1"),
     ("distill", "model.task.lr=nan", "model.task.lr=nan: must be a number > 0"),
     ("distill", "eval_split=dev", "eval_split=dev: must be one of train, val, test"),
     ("surrogate", "source=cv", "source=cv: must be one of student, teacher"),
-    ("surrogate", "data.batch_size=0", "data.batch_size=0: must be an integer >= 1"),
+    ("surrogate", "data.batch_size=0", "data.batch_size=0: must be an integer in [1, 1000000]"),
     ("bench", "threads=0", "threads=0: must be an integer >= 1"),
     ("bench", "step_time.repeats=0", "step_time.repeats=0: must be an integer >= 1"),
     ("bench", "step_time.profile=[nonexistent]", "step_time.profile=['nonexistent']: must be a list, each one of"),
@@ -56,7 +71,7 @@ def test_bad_config_values_are_one_line_naming_key_value_and_range(config, overr
 
 
 @pytest.mark.parametrize("job,override,message", [
-    ("make_dataset", "dataset.episodes=abc", "error: dataset.episodes=abc: must be an integer >= 1"),
+    ("make_dataset", "dataset.episodes=abc", "error: dataset.episodes=abc: must be an integer in [1, 100000]"),
     ("distill", "trainer.max_epochs=abc", "error: trainer.max_epochs=abc: must be an integer >= 1"),
     ("surrogate", "seed=-1", "error: seed=-1: must be an integer in [0, 4294967295]"),
 ])
@@ -77,10 +92,13 @@ def test_every_job_checks_its_config_first(job, override, message, tmp_path, tin
 
 
 @pytest.mark.parametrize("config,override,message", [
-    ("distill", "modle.epochs=3", "Could not override 'modle.epochs'. Key 'modle' is not in struct."),
-    ("make_dataset", "dataset.nme=x", "Could not override 'dataset.nme'. Key 'nme' is not in struct."),
-    ("results", "bootstrap.resample=3", "Could not override 'bootstrap.resample'. Key 'resample' is not in struct."),
-    ("distill", "model=studnet", "unknown model 'studnet'; choose one of student, student_certifiable, student_wide, teacher"),
+    ("distill", "modle.epochs=3", "unknown key 'modle.epochs'; did you mean model.epochs?"),
+    ("make_dataset", "dataset.nme=x", "unknown key 'dataset.nme'; did you mean dataset.name?"),
+    ("results", "bootstrap.resample=3", "unknown key 'bootstrap.resample'; did you mean bootstrap.resamples?"),
+    ("planner", "gradient=cv", "unknown key 'gradient'; did you mean gradients?"),
+    ("planner", "zzz.qqq=1", "unknown key 'zzz.qqq' (`planner --help` lists them)"),
+    ("distill", "model=studnet", "unknown model 'studnet'; did you mean model=student? (choose one of student, "
+                                 "student_certifiable, student_hyp, student_wide, teacher, teacher_hyp)"),
 ])
 def test_a_misspelt_key_or_option_is_one_line(config, override, message):
     with pytest.raises(UserError) as e:
@@ -124,6 +142,19 @@ def test_a_window_the_model_cannot_take_is_refused_before_planning():
         check_window(planner_config("two_lane", ["n_slots=5"]), TorchPredictor("teacher", teacher))
 
 
+@pytest.mark.slow
+def test_a_teacher_trains_and_exports_at_its_datasets_window(tmp_path):
+    from data.cli import run as make_dataset
+    from distill.export import load_onnx
+    from distill.train import run as distill
+
+    make_dataset(compose_cfg("make_dataset", ["dataset=tiny", "dataset.n_slots=3", "dataset.T_obs=6", f"out_dir={tmp_path}",
+                                              "plot_episodes=0"]))
+    distill(compose_cfg("distill", ["model=teacher", f"dataset_dir={tmp_path / 'tiny'}", f"models_dir={tmp_path / 'models'}",
+                                    f"run_dir={tmp_path / 'run'}", "trainer.max_epochs=1", "trainer.enable_progress_bar=false"]))
+    assert load_onnx("teacher", tmp_path / "models").session.get_inputs()[0].shape[1:] == [6, 4, 2]  # not 8 steps of 5 cars
+
+
 def test_interaction_values_are_checked():  # the bench's values: as the table of bad config values above
     with pytest.raises(UserError) as e:
         validate.check(compose_cfg("evaluate_interaction", ["sources=[]"]), interaction.SCHEMA)
@@ -144,14 +175,15 @@ NO_GROUPS = ["none: every setting is a key below"]
 @pytest.mark.parametrize("command,groups,foreign", [
     ("make-dataset", ["dataset: interactive | large | small | tiny  (now small)", f"scenario: {' | '.join(options('scenario'))}  (now dense)"],
      ["model:", "trainer:"]),
-    ("distill", ["model: student | student_certifiable | student_wide | teacher  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
+    ("distill", ["model: student | student_certifiable | student_hyp | student_wide | teacher | teacher_hyp  (now teacher)", "trainer: ddp | default | long  (now default)"], ["scenario:"]),
     ("surrogate", ["paper: table1  (now table1)"], ["dataset:", "model:", "scenario:", "trainer:"]),
-    ("compare", NO_GROUPS, ["dataset:", "gradients:", "model:", "paper:", "scenario:", "trainer:"]),
+    ("compare", [f"scenario: {' | '.join(options('scenario'))}  (now none)"], ["dataset:", "gradients:", "model:", "paper:",
+                                                                              "trainer:"]),
     ("python -m bench.step_time", NO_GROUPS, ["dataset:", "gradients:", "model:", "paper:", "scenario:", "trainer:"]),
 ])
 def test_help_names_the_command_and_only_its_groups(command, groups, foreign):
     argv = [sys.executable, *command.split()[1:]] if command.startswith("python ") else [BIN / command]
-    out = subprocess.run([*argv, "--help"], capture_output=True, text=True, timeout=120, cwd=REPO).stdout
+    out = subprocess.run([*argv, "--help"], capture_output=True, text=True, cwd=REPO).stdout
     assert out.startswith(f"{command}: ") and "Hydra" not in out.splitlines()[0] and "powered by Hydra" not in out
     section = out.split("== Config groups (group=option) ==\n")[1].split("\n\n")[0].splitlines()
     assert all(g in section for g in groups)
@@ -170,6 +202,12 @@ def test_help_names_the_command_and_only_its_groups(command, groups, foreign):
     (["scenario.params.dt=nan"], "scenario.params.dt=nan: must be a number > 0"),
     (["scenario=dense", "scenario.speed_range=[5,1]"], "scenario.speed_range=[5, 1]: must be [low, high] with low <= high"),
     (["scenario.drivers=[]"], "scenario.drivers=[]: scenario=two_lane needs at least one driver to merge among"),
+    # an episode that would end before its first step (it was logged FINISHED with NaN metrics)
+    (["scenario.x_ref=-5"], "scenario.x_ref=-5: the ego's lane must end ahead of its start (scenario.ego.x = 9.2 m)"),
+    (["scenario.ego.x=100"], "scenario.x_ref=45: the ego's lane must end ahead of its start (scenario.ego.x = 100 m)"),
+    (["scenario=dense", "scenario.x_ref=9"], "scenario.x_ref=9: the ego's lane must end ahead of its start (scenario.ego.x = 9.2 m)"),
+    (["scenario=random", "scenario.x_ref=25"], "scenario.x_ref=25: the ego's lane must end ahead of its start "
+                                               "(scenario.platoon_x + scenario.ego_offset_range[1] = 26 m)"),
 ])
 @pytest.mark.parametrize("config", ["planner", "make_dataset"])
 def test_nonsense_scenarios_are_one_line(config, overrides, message):

@@ -17,6 +17,7 @@ import pytest
 from errors_common import BIN, REPO, error_lines, job, python
 
 from conftest import compose_cfg
+from core import jobs
 from core.jobs import UserError, guarded, mlflow_run, staged
 
 SLOW_JOB = """
@@ -65,11 +66,10 @@ def test_sigterm_stops_a_job_non_zero_and_marks_its_run_killed(kind, tmp_path, m
     ready = tmp_path / "ready"
     p = subprocess.Popen([sys.executable, "-c", textwrap.dedent(SLOW_JOB.replace("{kind}", kind)), str(ready)], cwd=REPO,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while not ready.exists() and p.poll() is None and time.time() < deadline:
+    while not ready.exists() and p.poll() is None:
         time.sleep(0.05)
     p.terminate()  # SIGTERM
-    out, err = p.communicate(timeout=60)
+    out, err = p.communicate()
     assert p.returncode == 128 + 15, err[-2000:]
     assert err.strip().splitlines()[-1] == "error: stopped by SIGTERM"
     assert mlflow.get_run(out.split()[0]).info.status == "KILLED"
@@ -92,8 +92,8 @@ def test_sigint_in_a_batch_is_one_line_exit_130_and_its_run_killed(tmp_path):
     proc = subprocess.Popen([str(BIN / "planner"), "scenario=random", "gradients=analytic", "method=nnmpc", "episodes=500",
                              "n_jobs=1", "max_steps=8", f"out_dir={tmp_path}"], cwd=tmp_path,
                             env={**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{db}"}, stderr=subprocess.PIPE, text=True)
-    deadline, status = time.time() + 90, []
-    while not status and proc.poll() is None and time.time() < deadline:  # its run is open before the first episode
+    status = []
+    while not status and proc.poll() is None:  # its run is open before the first episode
         time.sleep(0.2)
         if db.exists():
             with sqlite3.connect(db) as con:
@@ -103,10 +103,65 @@ def test_sigint_in_a_batch_is_one_line_exit_130_and_its_run_killed(tmp_path):
                     pass
     assert status == [("RUNNING",)]
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    _, err = proc.communicate()
     assert proc.returncode == 130 and error_lines(err) == ["error: stopped by SIGINT"], err
     with sqlite3.connect(db) as con:
         assert con.execute("select status from runs").fetchall() == [("KILLED",)]
+
+
+LAUNCHED = """
+    import atexit, os, signal, sys, time
+    from pathlib import Path
+    from bench import launch
+
+    def main():  # a command's main(), as bench.launch calls it
+        if sys.argv[1] == "import":  # a stop while the command's modules import: before any job
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(30)
+        atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT) or time.sleep(30))  # one more while Python exits
+        if sys.argv[1] == "stopped":  # the job was stopped and said so
+            print("error: stopped by SIGINT", file=sys.stderr)
+            sys.exit(130)
+
+    sys.modules["a_command"] = type(sys)("a_command")
+    sys.modules["a_command"].main = main
+    launch.run("a_command")
+"""
+
+
+@pytest.mark.parametrize("moment", ["import", "stopped", "finished"])
+def test_a_stop_outside_the_job_is_one_line_and_exit_130(moment):
+    """While a command imports, after a stopped job (a second Ctrl-C: it was an llvmlite traceback and death by the
+    signal) and while a finished one exits (loky's clean-up): one line, exit 130."""
+    p = python(LAUNCHED, moment)
+    _, err = p.communicate()
+    assert p.returncode == 130 and error_lines(err) == ["error: stopped by SIGINT"], err
+
+
+PARALLEL = """
+    import sys
+    from joblib import Parallel, delayed
+    from bench import launch
+
+    def main():  # a command whose job ran on loky's worker processes (the ceiling's search): they stay up after it
+        print(sum(Parallel(n_jobs=2)(delayed(abs)(-k) for k in range(4))))
+
+    sys.modules["a_command"] = type(sys)("a_command")
+    sys.modules["a_command"].main = main
+    launch.run("a_command")
+"""
+
+
+def test_a_command_whose_job_used_worker_processes_exits_after_it():
+    p = python(PARALLEL)
+    out, err = p.communicate()  # it hung, or a worker printed a traceback: the exit waited on workers nobody had stopped
+    assert p.returncode == 0 and out.strip() == "6" and "Traceback" not in err, err
+
+
+def test_every_console_script_goes_through_the_launcher():
+    scripts = [line.split("=")[0].strip() for line in (REPO / "pyproject.toml").read_text().split("[project.scripts]")[1]
+               .split("\n\n")[0].splitlines()[1:]]
+    assert len(scripts) == 10 and all("bench.launch" in (BIN / s).read_text() for s in scripts)
 
 
 def test_a_job_killed_while_creating_the_store_leaves_it_usable(tmp_path):
@@ -114,8 +169,7 @@ def test_a_job_killed_while_creating_the_store_leaves_it_usable(tmp_path):
     env = {"MLFLOW_TRACKING_URI": f"sqlite:///{db}"}
     first = subprocess.Popen([str(BIN / "compare"), f"out_dir={tmp_path}"], cwd=tmp_path, env={**os.environ, **env},
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 60
-    while not (db.exists() or db.with_name(".new.db.creating").exists()) and first.poll() is None and time.time() < deadline:
+    while not (db.exists() or any(tmp_path.glob(".new.db.creating-*"))) and first.poll() is None:
         time.sleep(0.02)
     time.sleep(0.5)  # MLflow's migrations take seconds: well inside them
     first.kill()  # SIGKILL: no clean-up of any kind runs
@@ -221,7 +275,7 @@ def test_a_set_whose_job_was_killed_mid_swap_is_completed_by_the_next_reader(tmp
     for name in names:
         (folder / name).write_text("old")
     p = python(KILLED_MID_SWAP, folder)
-    p.communicate(timeout=120)
+    p.communicate()
     assert p.returncode == -signal.SIGKILL
     assert {f.name: f.read_text() for f in folder.iterdir() if f.is_file()}["meta.json"] == "new"  # the mix it left
     with pytest.raises(UserError, match="corrupt dataset meta file"):  # the reader moves the rest in first: read as one set
@@ -264,6 +318,75 @@ def test_a_stop_inside_a_compiled_call_is_raised_once_it_returns(monkeypatch):
     assert e.value.code == 130 and results == ["List"]  # the call returned its result, then the job stopped
 
 
+def test_the_compiled_loops_see_a_stop_signal_until_its_job_ends():
+    from planner.zstep import stop_requested
+
+    seen = []
+    previous = signal.signal(signal.SIGUSR1, lambda *_: None)  # a signal Python handles that stops nothing
+
+    def stopped():
+        try:
+            os.kill(os.getpid(), signal.SIGUSR1)
+            seen.append(stop_requested(jobs.SIGNALS))
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        finally:
+            seen.append(stop_requested(jobs.SIGNALS))
+
+    try:
+        with pytest.raises(SystemExit):
+            guarded(stopped)()
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert seen == [False, True] and not guarded(lambda: stop_requested(jobs.SIGNALS))()  # the next job unstopped
+
+
+MARKED_PLANNER = """
+    import sys
+    from bench import launch
+    from planner import admm
+
+    solve = admm.typed_call
+
+    def marked(kernel, *args):
+        kernel.compile(tuple(map(kernel.typeof_pyval, args)))  # compiled or loaded first: the marker means the call is next
+        print("solving", flush=True)
+        return solve(kernel, *args)
+
+    admm.typed_call = marked
+    sys.argv = ["planner", *sys.argv[1:]]
+    launch.run("planner.cli")
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_inside_a_long_compiled_solve_ends_the_run_at_once(signum, tmp_path):
+    """A stop while one ADMM solve runs as one compiled call (T_p 200 and 2000 iterations that never converge: over ten
+    minutes) ends the run within the call: it was handled once the call returned."""
+    db, log = tmp_path / "m.db", tmp_path / "stderr"
+    args = ["gradients=cv", "scenario=two_lane", "plots=false", "mpc.T_p=200", "mpc.admm.max_iters=2000", "mpc.admm.tol_F=1e-12",
+            "mpc.admm.tol_step=1e-12", f"out_dir={tmp_path / 'out'}", f"hydra.run.dir={tmp_path / 'hydra'}"]
+    with log.open("w") as stderr:  # a file: numba's warnings while it compiles would fill a pipe nobody reads yet
+        p = subprocess.Popen([sys.executable, "-c", textwrap.dedent(MARKED_PLANNER), *args], cwd=REPO, stdout=subprocess.PIPE,
+                             stderr=stderr, text=True, env={**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{db}"})
+    while (line := p.stdout.readline()) not in ("solving\n", ""):
+        pass
+    assert line, log.read_text()[-2000:]
+    time.sleep(1)  # inside the call
+    p.send_signal(signum)
+    try:
+        p.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.communicate()
+        pytest.fail("the stop waited for the compiled call to return")
+    err = log.read_text()
+    assert p.returncode == 128 + signum and error_lines(err)[-1] == f"error: stopped by {signal.Signals(signum).name}", err
+    with sqlite3.connect(db) as con:
+        assert con.execute("select status from runs").fetchall() == [("KILLED",)]
+    assert not any((tmp_path / "out").iterdir())  # no steps CSV, whole or half
+
+
 def test_a_step_that_swallows_a_stop_ends_the_episode_after_it():
     from planner import closed_loop, setup
 
@@ -297,7 +420,7 @@ def test_a_stopped_planner_run_ends_killed(tmp_path, monkeypatch, capsys):
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(5)
 
-    monkeypatch.setattr(cli, "drive", stopped)
+    monkeypatch.setattr("planner.setup.drive", stopped)
     with pytest.raises(SystemExit) as e:
         cli.run(compose_cfg("planner", ["scenario=two_lane", "gradients=cv", "seed=4600", f"out_dir={tmp_path}"]))
     assert e.value.code == 130 and error_lines(capsys.readouterr().err) == ["error: stopped by SIGINT"]

@@ -1,5 +1,5 @@
-"""The MPC step's fast paths give the slow paths' plans: closed-form box QPs, reused linearisations, OSQP at ADMM's
-tolerances, the fused surrogate export (speed: `make bench`)."""
+"""The MPC step's fast paths give the slow paths' plans: closed-form box QPs, reused linearisations, one SQP step per
+ADMM iteration, the fused surrogate export (speed: `make bench`)."""
 import copy
 
 import numpy as np
@@ -10,17 +10,16 @@ from test_surrogate import smooth_student
 
 from bench.states import collect, solver_step
 from core.rollout import SLOTS, T_OBS, ego_xy, rollout_jacobian
-from planner import mpc
+from planner import admm, daqp_qp, mpc
 from planner.gradients import Surrogate
-from planner.qp import QP, BoxQP, SolverFailure
+from planner.qp import QP, SolverFailure
 from planner.safety import Safety
 from planner.setup import make
 from surrogate import models
 from surrogate.export import export
 from surrogate.network import Fused, JacobianNet
 
-SLOW = ("zstep.settings.reuse_radius=0", "zstep.settings.max_iters=2", "mpc.admm.osqp.eps_abs=1e-6", "mpc.admm.osqp.eps_rel=1e-6",
-        "~mpc.admm.osqp.adaptive_rho_interval")  # the reference: OSQP tight, two SQP steps each from a fresh linearisation
+SLOW = ("zstep.settings.reuse_radius=0", "zstep.settings.max_iters=2")  # two SQP steps, each from a fresh linearisation
 
 
 @pytest.fixture(scope="module")
@@ -52,16 +51,17 @@ def test_box_qp_closed_form_equals_osqp_inside_and_on_the_box(states, analytic):
     _, src, s = analytic
     prob, solvers, _ = mpc.build(s, states[2].obs, src, states[2].warm, solver_step().keywords["zstep"])
     P = prob.Phi_1.P + s.admm.rho * prob.dyn.A.T @ prob.dyn.A
-    assert np.array_equal(solvers.delta_qp.P, P)  # the Delta-update's QP: P_1 + rho A'A
+    box = solvers.delta_qp._replace(lo=np.full(len(P), -0.5), hi=np.full(len(P), 0.5))
+    assert np.array_equal(box.P, P)  # the Delta-update's QP: P_1 + rho A'A
     tight = {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000, "polishing": True}
     rng = np.random.default_rng(0)
     for scale in (0.01, 300.0):  # unconstrained minimiser inside the box, then mostly outside it
         q = scale * rng.normal(size=len(P))
-        fast = BoxQP(P, q, -0.5, 0.5, tight)
-        x = fast.solve(q)
-        osqp = QP(P, q, sparse.eye(len(P), format="csc"), np.full(len(P), -0.5), np.full(len(P), 0.5), tight).solve()
-        assert np.abs(x - osqp).max() < 1e-6 and np.all(np.abs(x) <= 0.5 + 1e-9)
-        assert (fast.qp is None) == (scale < 1.0) == bool(np.all(np.abs(x) < 0.5))  # OSQP only when the box is active
+        update = (*admm.box_minimiser(box.P_inv, q, box.lo, box.hi), q)
+        x, flag, called = admm.box_update(daqp_qp.handle(len(P)), True, box, update)
+        osqp = QP(P, q, sparse.eye(len(P), format="csc"), box.lo, box.hi, tight).solve()
+        assert flag == 1 and np.abs(x - osqp).max() < 1e-6 and np.all(np.abs(x) <= 0.5 + 1e-9)
+        assert (not called) == (scale < 1.0) == bool(np.all(np.abs(x) < 0.5))  # DAQP only when the box is active
 
 
 def test_reused_linearisation_is_exact_for_cv_and_second_order_for_a_reacting_predictor(states, analytic):

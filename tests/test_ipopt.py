@@ -17,7 +17,7 @@ from core.rollout import b_i, ego_xy, rollout
 from data.world import backfill
 from distill.models import StudentPredictor, TorchPredictor
 from distill.student import GeluStudent
-from planner import cli, mpc
+from planner import cli, mpc, safeguard
 from planner.gradients import ExactLocal
 from planner.setup import build, make, planner_config
 
@@ -83,9 +83,10 @@ def test_convex_instance_ipopt_and_osqp_agree(options):
 
 
 @pytest.mark.parametrize("predictor", ["analytic", "student"])
-def test_plan_meets_dynamics_and_safety_on_the_numpy_rollout(options, student, predictor):
+def test_plan_meets_dynamics_and_safety_on_the_numpy_rollout(options, student, predictor, monkeypatch):
     # the check of the nonlinear bicycle's rollout off: this tests the NLP's own solution, not the linearisation
-    scenario, analytic, s = make("two_lane", ["gradients=analytic", "mpc.safeguard.check_tol=100"])
+    monkeypatch.setattr(safeguard, "CHECK_TOL", 100.0)
+    scenario, analytic, s = make("two_lane", ["gradients=analytic"])
     source = analytic if predictor == "analytic" else ExactLocal(predictor, student)
     obs = observation(scenario)
     r = ipopt_step(s, obs, source, None, options)

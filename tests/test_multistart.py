@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from test_surrogate import smooth_student
 
+from core import jit_linalg
 from distill.models import StudentPredictor
 from distill.predictors import ConstantVelocity
-from planner import jit_admm, jit_linalg, mpc, step
+from planner import admm, mpc, step
 from planner.gradients import ExactLocal
 from planner.setup import make
 
@@ -53,14 +54,14 @@ def _zstep():
 
 def _counted(monkeypatch):
     """A list that grows by the number of solves at each call of the compiled multi-start solve."""
-    calls, solves = [], jit_admm.compiled_solves
-    monkeypatch.setattr(jit_admm, "compiled_solves", lambda batch: calls.append(len(batch)) or solves(batch))
+    calls, solves = [], admm.compiled_solves
+    monkeypatch.setattr(admm, "compiled_solves", lambda batch: calls.append(len(batch)) or solves(batch))
     return calls
 
 
 def _alone(s, obs, source, starts, zstep):
-    """Each start solved by itself, as the step did before the joint call."""
-    return [step.guarded(lambda: step.solve(s, st.aim, obs, source, st.plan, zstep)) for st in starts]
+    """Each start solved by itself."""
+    return [step.solve_all(s, obs, source, [st], zstep)[0] for st in starts]
 
 
 def _same(a, b):
@@ -100,9 +101,9 @@ def test_a_source_the_core_does_not_run_and_a_failed_joint_call_take_the_one_by_
     starts = s.strategy.candidates(s, obs, warm, cv)
     alone = _alone(s, obs, cv, starts, zstep)
     del calls[:]
-    counted = jit_admm.compiled_solves
-    fail_once = lambda batch: (calls.append("failed"), monkeypatch.setattr(jit_admm, "compiled_solves", counted))[0] and 1 / 0
-    monkeypatch.setattr(jit_admm, "compiled_solves", fail_once)
+    counted = admm.compiled_solves
+    fail_once = lambda batch: (calls.append("failed"), monkeypatch.setattr(admm, "compiled_solves", counted))[0] and 1 / 0
+    monkeypatch.setattr(admm, "compiled_solves", fail_once)
     assert all(_same(a, b) for a, b in zip(step.solve_all(s, obs, cv, starts, zstep), alone))
     assert calls == ["failed", 1, 1, 1]  # then each start in a call of its own
 
@@ -112,25 +113,23 @@ def test_a_kernel_called_through_its_entry_point_gives_its_result_and_no_two_num
     from numba.typed import List
 
     M, x = np.arange(6.0).reshape(2, 3), np.array([1.0, -2.0, 0.5])
-    assert np.array_equal(jit_admm.typed_call(jit_linalg.matvec, M, x), M @ x)  # typed by numba, the entry kept
-    assert np.array_equal(jit_admm.typed_call(jit_linalg.matvec, 2 * M, x), 2 * M @ x)  # through the kept entry
+    assert np.array_equal(admm.typed_call(jit_linalg.matvec, M, x), M @ x)  # typed by numba, the entry kept
+    assert np.array_equal(admm.typed_call(jit_linalg.matvec, 2 * M, x), 2 * M @ x)  # through the kept entry
     readonly = x.copy()
     readonly.flags.writeable = False
     typed_list = List([x])
     samples = [x, np.asfortranarray(M), M, M[:, ::2], readonly, x.astype(np.float32), np.zeros(3, bool), 1, 1.0, True,
-               np.float64(1.0), (x, 1), (1, x), jit_admm.Stop(1, 1.0, 1.0), (1, 1.0, 1.0), typed_list, List([M])]
+               np.float64(1.0), (x, 1), (1, x), admm.Stop(1, 1.0, 1.0), (1, 1.0, 1.0), typed_list, List([M])]
     for a in samples:
         for b in samples:
-            assert jit_admm.structure(a) != jit_admm.structure(b) or typeof(a) == typeof(b), (a, b)  # one entry, one type
+            assert admm.structure(a) != admm.structure(b) or typeof(a) == typeof(b), (a, b)  # one entry, one type
 
 
 def _leaves(x):
-    """The numbers of a set-up (build's Problem, Solvers, start): arrays and scalars, in order, through tuples, the
-    box QPs and the Z-step's data."""
+    """The numbers of a set-up (build's Problem, Solvers, start): arrays and scalars, in order, through tuples (the
+    box QPs among them) and the Z-step's data."""
     if isinstance(x, tuple):
         return [leaf for item in x for leaf in _leaves(item)]
-    if hasattr(x, "P_inv"):  # planner.qp.BoxQP
-        return _leaves((x.P, x.P_inv, x.q0, x.lo, x.hi))
     if hasattr(x, "data"):  # the compiled Z-step
         return _leaves(x.data)
     return [x]

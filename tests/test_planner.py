@@ -5,7 +5,6 @@ import functools
 from pathlib import Path
 
 import numpy as np
-import osqp
 import pytest
 from hydra.utils import instantiate
 from scipy import sparse
@@ -13,12 +12,13 @@ from test_configs import drift
 
 from bench.branches import ego_controls, execute
 from core import jobs
-from core.jobs import CONF_DIR, UserError
+from core.jobs import CONF_DIR, SIGNALS, UserError
 from core.rollout import ego_xy
 from data import perception
 from data.world import backfill
 from distill import models as distill_models
 from planner import admm, cli, cost, dynamics, mpc, step
+from planner import zstep as zsteps
 from planner.gradients import Autodiff, CentralDifferences
 from planner.qp import QP
 from planner.safety import Safety
@@ -118,36 +118,19 @@ def test_nan_observation_falls_back(two_lane, sqp):
     assert "non-finite observation" in result.fallback and np.all(np.isfinite(result.u))
 
 
-def test_osqp_failure_falls_back(two_lane, sqp, monkeypatch):
-    scenario, cv, s = two_lane
-    obs = observe(scenario.make_world(0).z)
-    real = osqp.OSQP.solve
-
-    def failing(self, *args, **kwargs):
-        result = real(self, *args, **kwargs)
-        result.info.status = "primal infeasible"
-        return result
-
-    monkeypatch.setattr(osqp.OSQP, "solve", failing)
-    result = step.mpc_step(dataclasses.replace(s, admm=dataclasses.replace(s.admm, core="reference")), obs, cv, None, sqp)
-    assert "solver failure (OSQP primal infeasible)" in result.fallback and np.all(np.isfinite(result.u))
-
-
 def test_daqp_failure_falls_back(two_lane, sqp):
     scenario, cv, s = two_lane
     obs = observe(scenario.make_world(0).z)
-    crossed = dataclasses.replace(s, admm=dataclasses.replace(s.admm, core="compiled"))
+    crossed = dataclasses.replace(s)
     object.__setattr__(crossed, "delta_box", (0.1, -0.1))  # past Settings' check, lower above upper: DAQP refuses the box QP
     result = step.mpc_step(crossed, obs, cv, None, sqp)
     assert "solver failure (DAQP exit flag -" in result.fallback and np.all(np.isfinite(result.u))
 
 
-@pytest.mark.parametrize("core", ["compiled", "reference"])
-def test_built_steps_are_plain_partials_that_answer_as_hydras_own(two_lane, core):
+def test_built_steps_are_plain_partials_that_answer_as_hydras_own(two_lane):
     """core.jobs.build's step and its Z-step: plain partials (the installed Hydra's partial re-checks its target
     policy on every call) of the same functions and arguments as Hydra's own, with the same plan, control and reason."""
     scenario, cv, s = two_lane
-    s = dataclasses.replace(s, admm=dataclasses.replace(s.admm, core=core))
     node = planner_config("two_lane").solver.step
     ours, hydras = build(node), instantiate(node, _convert_="all")
     assert type(ours) is functools.partial and type(ours.keywords["zstep"]) is functools.partial
@@ -162,7 +145,7 @@ def test_built_steps_are_plain_partials_that_answer_as_hydras_own(two_lane, core
 
 
 def test_unknown_names_and_missing_models_are_one_line_errors(tmp_path):
-    choices = "choose one of analytic, cv, fd, oracle, student, surrogate, teacher"
+    choices = "choose one of analytic, cv, fd, oracle, student, student_hyp, surrogate, teacher, teacher_hyp"
     with pytest.raises(UserError, match=f"unknown gradients 'bogus'; {choices}"):
         jobs.check_groups(["gradients=bogus"])
     with pytest.raises(UserError, match="unknown zstep 'nope'; choose one of pygranso, sqp"):
@@ -228,10 +211,10 @@ def test_penalty_mode_drives_and_its_z_step_objective_carries_minus_lambda_s_sum
     objective = lambda Z: (prob.Phi_3(Z) + mu @ (prob.dyn.C @ Z) + s.admm.rho / 2 * np.sum((prob.dyn.C @ Z - c_Z) ** 2)
                            - 2.0 * zstep.safety(Z).sum())
     Z1, Z2 = st.Z, st.Z + rng.normal(0, 0.3, st.Z.shape)
-    merit = lambda Z: zstep.merit(Z, lin_q, zstep.safety(Z))
+    merit = lambda Z: zsteps.merit(zstep.data.H, lin_q, Z, zstep.safety(Z), zstep.sqp)
     assert merit(Z1) - merit(Z2) == pytest.approx(objective(Z1) - objective(Z2), rel=1e-9)  # equal up to a constant
     assert abs(zstep.safety(Z1).sum() - zstep.safety(Z2).sum()) > 1e-2  # so the - lambda_s sum b_i term was tested
-    Z_new, _, _ = zstep(st.Z, mu, c_Z)
+    Z_new = zsteps.z_update(zstep.kernel(), True, zstep.safety.linearize(st.Z)[2], st.Z, mu, c_Z, 0.0, True, SIGNALS)[0]
     assert objective(Z_new) < objective(st.Z)  # the step descends the penalty-form objective
 
 

@@ -27,7 +27,9 @@ def test_interactive_predictor_merges_and_reports(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     runs = mlflow.search_runs(experiment_names=["planner"],  # this run's, not other tests' (a stopped one has no steps)
                               filter_string=f"params.gradients = 'analytic' and params.out_dir = '{tmp_path}'")
-    assert {"admm", "nnmpc"} <= set(runs["params.method"]) and runs["metrics.step_ms_median"].notna().all()
+    children = runs[runs["tags.mlflow.parentRunId"].notna()]  # under the admm+nnmpc parent run
+    assert set(runs["params.method"]) == {"admm", "nnmpc", "admm+nnmpc"} and children["metrics.step_median_ms"].notna().all()
+    assert set(children["tags.mlflow.parentRunId"]) == set(runs.loc[runs["params.method"] == "admm+nnmpc", "run_id"])
 
 
 def test_constant_velocity_cannot_open_the_gap(tmp_path):
@@ -53,7 +55,7 @@ def test_unknown_gradient_name_is_one_clear_line(tmp_path):
                          cwd=tmp_path)
     assert out.returncode == 2
     assert out.stderr.strip().splitlines() == ["error: unknown gradients 'bogus'; choose one of analytic, cv, fd, oracle, "
-                                               "student, surrogate, teacher"]
+                                               "student, student_hyp, surrogate, teacher, teacher_hyp"]
 
 
 def test_record_dir_keeps_every_state_the_planner_linearises_at(tmp_path):

@@ -12,6 +12,7 @@ from conftest import compose_cfg
 from planner import cli
 
 ray = pytest.importorskip("ray")
+pytestmark = pytest.mark.slow  # a local Ray instance and four planner processes
 
 COMPARED = ("seed", "merged", "t_merge", "C_max", "d_min_m", "collision", "fallbacks", "steps", "crash", "nan")
 
@@ -39,7 +40,7 @@ def sweep(tmp_path, name, *overrides) -> list[list[dict]]:
     """`planner -m` over two seeds of random merges (CV, 3 steps) in tmp_path: each job's steps CSV without its timings."""
     argv = [Path(sys.executable).parent / "planner", "-m", "scenario=random", "gradients=cv", "max_steps=3", "plots=false",
             "seed=2000000,2000001", f"hydra.sweep.dir={name}", *overrides]
-    done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True,
                           env={**os.environ, "CI": "1", "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stderr[-3000:]
     jobs = []

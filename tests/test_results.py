@@ -73,6 +73,7 @@ def tiny(tmp_path_factory):
     return root / "out", root / "work", path.read_text(), seen
 
 
+@pytest.mark.slow  # the tiny preset's whole results run (module fixture `tiny`)
 def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
     out, work, md, _ = tiny
     for f in ("b_imposed.png", "fidelity.png", "merge_rate.png", "t_merge.png", "fallbacks.png", "accuracy_vs_speed.png",
@@ -107,6 +108,7 @@ def test_tiny_preset_writes_tables_and_figures_matching_mlflow(tiny):
     assert np.isfinite(float(row.split("|")[2]))
 
 
+@pytest.mark.slow  # the tiny preset's whole results run (module fixture `tiny`)
 def test_tiny_dense_headline_matches_the_per_world_csvs(tiny):
     _, work, md, _ = tiny
     assert md.index("## Dense traffic (headline)") < md.index("## Ceiling calibration") < md.index("## Predictors")
@@ -195,6 +197,7 @@ def test_a_planner_beats_the_ceiling_with_a_courteous_merge_it_missed_or_made_la
     assert beaten(worlds, [dict(e, courteous=0.0) for e in episodes]) == set()  # a forced merge beats nothing
 
 
+@pytest.mark.slow  # the tiny preset's whole results run (module fixture `tiny`)
 def test_gradients_table_shows_the_surrogate_jobs_scores_of_every_source_with_their_intervals(tiny):
     _, work, md, _ = tiny
     runs = mlflow.search_runs(experiment_names=["surrogate"])
@@ -209,6 +212,7 @@ def test_gradients_table_shows_the_surrogate_jobs_scores_of_every_source_with_th
     assert numbers(rows["constant velocity (baseline)"][3])[0] == pytest.approx(1.0, abs=1e-3)  # cv: no reaction at all
 
 
+@pytest.mark.slow  # the tiny preset's whole results run (module fixture `tiny`)
 def test_each_section_keeps_its_intervals_when_sections_are_added_or_reordered(tiny, tmp_path):
     _, _, md, args = tiny
     report = results.Report(*args[:4], tmp_path)
@@ -225,15 +229,25 @@ def test_each_section_keeps_its_intervals_when_sections_are_added_or_reordered(t
         assert text in shuffled, name
 
 
-def test_readme_headline_rows_are_the_generated_reports_rows():
+def table(md: str) -> tuple[list[str], list[list[str]]]:
+    """The header and rows of the first Markdown table in `md`, cells stripped."""
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in md.splitlines() if line.startswith("| ")]
+    return rows[0], rows[1:]
+
+
+def test_readme_headline_cells_are_the_generated_reports_cells():
+    """Every cell of the README's headline table is the generated dense headline's, under the same column name."""
     root = Path(__file__).parents[1]
-    readme = (root / "README.md").read_text().split("\n## Results\n")[1].split("\n## ")[0]
-    rows = [line for line in readme.splitlines() if line.startswith("| ")]
-    generated = section((root / "results" / "README-results.md").read_text(), "Dense traffic (headline)").splitlines()
-    assert len(rows) >= 5 and rows[0].startswith("| gradients | method |")
-    assert [r for r in rows if r not in generated] == []  # every figure copied, none typed
+    header, rows = table(section((root / "README.md").read_text(), "The headline"))
+    full, generated = table(section((root / "results" / "README-results.md").read_text(), "Dense traffic (headline)"))
+    assert header[:2] == ["gradients", "method"] and set(header) <= set(full) and len(rows) >= 5
+    by_row = {(r[0], r[1]): dict(zip(full, r)) for r in generated}
+    for r in rows:  # every figure copied, none typed
+        assert (r[0], r[1]) in by_row, r
+        assert dict(zip(header, r)) == {h: by_row[(r[0], r[1])][h] for h in header}, r
 
 
+@pytest.mark.slow  # the tiny preset's whole results run (module fixture `tiny`)
 def test_tiny_cooperation_sweep_shows_each_levels_ceiling_and_rows_on_the_same_worlds(tiny):
     out, work, md, _ = tiny
     assert (out / "cooperation.png").read_bytes()[:4] == b"\x89PNG" and "cooperation.png" in md
@@ -291,6 +305,7 @@ def test_spearman_rank_correlation_and_its_world_bootstrap_match_a_direct_comput
     assert np.isnan(rank_correlation(fidelity, 0 * hits, counts, 10, np.random.default_rng(0))).all()  # nobody merges
 
 
+@pytest.mark.slow  # the tiny preset's whole results run (module fixture `tiny`)
 def test_tiny_fidelity_section_puts_each_predictor_s_interactive_batch_beside_its_interaction_scores(tiny):
     _, work, md, (_, out, _, _, _) = tiny
     text = section(md, "Fidelity against outcome")
@@ -313,8 +328,11 @@ def test_tiny_fidelity_section_puts_each_predictor_s_interactive_batch_beside_it
         for column, score in ((2, "brake_auc"), (3, "react_corr")):
             mine = cell(md, "Fidelity against outcome", name, "1 x 2", column)
             assert mine == shown.split("|")[1:-1][{"brake_auc": 8, "react_corr": 1}[score]].strip(), score
-        rows[name] = (float(numbers(shown.split("|")[1:-1][8])[0]), np.mean([e["courteous"] for e in eps]))
-    (x1, y1), (x2, y2) = rows.values()  # two predictors: rho is the sign of their order's agreement, none for a tie
-    rho = "-" if x1 == x2 or y1 == y2 else f"{np.sign((x2 - x1) * (y2 - y1)):.2f}"
-    assert f"brake_auc: rho = {rho}" in text and "over 2 predictors" in text
+        auc = numbers(shown.split("|")[1:-1][8])  # none ('-'): no state of the tiny set forces anyone to brake
+        rows[name] = (float(auc[0]) if auc else np.nan, np.mean([e["courteous"] for e in eps]))
+    scored = [v for v in rows.values() if np.isfinite(v[0])]
+    rho = "-"  # two predictors: rho is the sign of their order's agreement, none for a tie or with fewer
+    if len(scored) == 2 and scored[0][0] != scored[1][0] and scored[0][1] != scored[1][1]:
+        rho = f"{np.sign((scored[1][0] - scored[0][0]) * (scored[1][1] - scored[0][1])):.2f}"
+    assert f"brake_auc: rho = {rho} over {len(scored)} predictors" in text
     assert "good_kept: rho = " in text and f"{out['verdicts']['oracle']['states']} states, one every 2 steps" in text

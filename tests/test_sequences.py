@@ -97,9 +97,9 @@ def test_without_the_rollout_term_the_loss_is_the_one_step_huber(tiny_dataset):
 
 
 def test_branch_groups_share_their_past_and_differ_in_the_ego_future(tiny_dataset):
-    a = dataset.load(tiny_dataset, "train")
+    a = dataset.factual(dataset.load(tiny_dataset, "train"))  # what the mean models train on: no flipped branches
     g = groups(a)
-    assert g.shape[0] > 0 and g.shape[1] == 4  # the episode's own window and its push-on, back-off and speed egos
+    assert g.shape[0] > 0 and g.shape[1] == 5  # the episode's own window and its push-on, back-off, speed and quick-lean egos
     for row in g:
         m = row[row >= 0]
         assert a["branch"][m[0]] == 0 and (a["branch"][m[1:]] > 0).all()
@@ -112,7 +112,7 @@ def test_branch_groups_share_their_past_and_differ_in_the_ego_future(tiny_datase
 def test_contrast_term_scores_the_predicted_difference_between_branches(tiny_dataset):
     torch.manual_seed(0)
     task = TeacherTask(NET, 1e-3, 0.0, scale_m=0.01, rollout_weight=0.0, rollout_scale_m=0.5, contrast_weight=1.0, **NO_BRAKE)
-    a = dataset.load(tiny_dataset, "train")
+    a = dataset.factual(dataset.load(tiny_dataset, "train"))  # the mean models' data
     g = groups(a)[:6]
     X, ego, others, mask = (torch.from_numpy(np.asarray(t[np.maximum(g, 0)], dtype=np.float32 if t.dtype != bool else bool))
                             for t in futures(a, 8))
@@ -134,7 +134,7 @@ def test_contrast_term_scores_the_predicted_difference_between_branches(tiny_dat
 
 
 def test_teacher_rollouts_label_each_branch_member_with_the_teachers_own_rollout(tiny_dataset):
-    a = dataset.load(tiny_dataset, "train")
+    a = dataset.factual(dataset.load(tiny_dataset, "train"))  # the mean models' data
     teacher = TorchPredictor("teacher", instantiate(NET).eval())
     X, ego, target, member = teacher_rollouts(teacher, a, 8, tiny_dataset)
     g = groups(a)
@@ -160,7 +160,7 @@ def test_student_branch_terms_fit_the_teachers_rollouts_and_their_response(tiny_
     task = StudentTask(OmegaConf.to_container(net), 1e-3, 0.0, scale_m=0.01, jac_weight=1.0, ego_jac_weight=1.0,
                        spectral_weight=0.0, cert_weight=0.0, rollout_weight=2.0, contrast_weight=3.0, rollout_scale_m=0.5)
     task.log = lambda *args, **kwargs: None
-    a = dataset.load(tiny_dataset, "train")
+    a = dataset.factual(dataset.load(tiny_dataset, "train"))  # the mean models' data
     X, ego, _, member = (torch.from_numpy(t) for t in teacher_rollouts(TorchPredictor("teacher", instantiate(NET).eval()),
                                                                        a, 8, tiny_dataset))
     X, ego, member = X[:5], ego[:5], member[:5]
@@ -206,7 +206,7 @@ def test_hard_braking_windows_are_found_from_the_recorded_future_and_drawn_more_
 def test_windows_whose_recorded_future_spans_the_horizon_are_drawn_more_often(tiny_dataset):
     from distill.datamodule import SequenceData
 
-    arrays = dataset.load(tiny_dataset, "train")
+    arrays = dataset.factual(dataset.load(tiny_dataset, "train"))  # the mean models' data
     whole = futures(arrays, 8)[3].all(axis=1)  # the run goes on 8 steps with the same cars in its slots
     assert 0 < whole.sum() < len(whole)
     data = SequenceData(tiny_dataset, 16, 8, 0, 3.0, 1.0, 4.0, 1.0)

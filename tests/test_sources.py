@@ -11,7 +11,7 @@ from test_surrogate import smooth_student
 
 from bench import interaction, results_plan
 from core import validate
-from core.jobs import CONF_DIR, UserError, check_groups
+from core.jobs import CONF_DIR, UserError, check_groups, sha256
 from core.rollout import SLOTS, T_OBS
 from planner.gradients import available, predictor_of, reads_models, source_class
 from planner.setup import make
@@ -39,19 +39,22 @@ def models_dir(tiny_models, tmp_path_factory):
     shutil.copytree(tiny_models[0], out, dirs_exist_ok=True)
     torch.manual_seed(0)
     net = JacobianNet(T_OBS, SLOTS, 16, 1, "").eval()
-    export(Fused(net, copy.deepcopy(smooth_student())), out / "surrogate.onnx", T_OBS, SLOTS, "teacher")
+    export(Fused(net, copy.deepcopy(smooth_student())), out / "surrogate.onnx", T_OBS, SLOTS, "teacher",
+           sha256(out / "teacher.ckpt"))  # as the job records the teacher it learned
     return out
 
 
 def test_the_listed_sources_are_the_yaml_files():
     files = sorted(f[:-5] for f in os.listdir(os.path.join(CONF_DIR, "gradients")) if f.endswith(".yaml"))
-    assert available() == files == sorted(EXPECTED)
+    hypotheses = ["student_hyp", "teacher_hyp"]  # built over hypothesis models (tests/test_contingency.py)
+    assert available() == files == sorted([*EXPECTED, *hypotheses]) and available(hypotheses=True) == hypotheses
     with pytest.raises(UserError, match=f"unknown gradients 'nope'; choose one of {', '.join(files)}$"):
         check_groups(["gradients=nope"])
-    assert available(needs_world=False) == [f for f in files if f != "oracle"] == list(interaction.SOURCES)
+    assert available(needs_world=False, hypotheses=False) == [f for f in EXPECTED if f != "oracle"] == list(interaction.SOURCES)
     assert available(torch_rollout=True) == ["teacher"]
     assert results_plan.TRAINED == ("fd", "student", "surrogate", "teacher")
-    assert validate.TRAINED_PREDICTORS == ("student", "teacher")
+    assert validate.TRAINED_PREDICTORS == ("student", "student_hyp", "teacher", "teacher_hyp")
+    assert validate.POINT_PREDICTORS == ("student", "teacher")
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))

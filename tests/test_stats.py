@@ -21,6 +21,13 @@ def test_wilson_is_the_score_test_interval(k, n):
     assert wilson(k, n) == pytest.approx((ci.low, ci.high), abs=1e-12)
 
 
+def test_wilson_at_the_ends_and_of_counts_held_as_floats():
+    z2 = sp.norm.ppf(0.975) ** 2
+    assert wilson(0.0, 10.0) == pytest.approx((0.0, z2 / (10 + z2)), abs=1e-12)  # no hit: hi = z^2 / (n + z^2)
+    assert wilson(10, 10) == pytest.approx((10 / (10 + z2), 1.0), abs=1e-12)
+    assert wilson(0.7 * 10, 10.0) == wilson(7, 10)  # 7.000000000000001: a batch's rate times its episodes: a count up to rounding
+
+
 def test_wilson_of_no_trials_is_nan():
     assert np.isnan(wilson(0, 0)).all()
 

@@ -54,9 +54,9 @@ def test_overlap_detects_touching_bodies_only():
 def x_behind_gap(sc, nudge: bool):
     """Position (m) after 6 s of the car behind the ego's slot (slot 3), with the ego nudging or staying."""
     policy = ProbePolicy(y_ref=sc.y_ref, keep_lane=not nudge, t_start=0.2, y_nudge=1.6, hold=100.0, v_target=5.0)
-    states, yielding, world, _ = rollout(sc, policy, seed=0, steps=30)
+    states, flags, world, _ = rollout(sc, policy, seed=0, steps=30)
     assert world.collisions == []
-    return states[-1, 3, 0], yielding
+    return states[-1, 3, 0], flags["yielding"]
 
 
 def test_yielding_driver_opens_a_gap_when_nudged():
@@ -102,8 +102,13 @@ def test_response_follows_the_encroachment_depth_with_a_first_order_lag():
             assert world.response[1] == pytest.approx(w * (1 - (1 - world.params.dt / d.t_ramp) ** k))
     stubborn = yielder_world(1.9)
     stubborn.will_yield[:] = False
-    stubborn.respond()
-    assert stubborn.response[1] == 0.0
+    stubborn.respond()  # it withholds the same response: it keeps its own acceleration, and an observer sees it refuse
+    assert stubborn.response[1] == pytest.approx(w * world.params.dt / d.t_ramp)  # w: the last (1.9 m) lean
+    assert not stubborn.yielding[1] and not stubborn.refused[1]
+    idm = stubborn.idm_to(1, stubborn.leader(1, int(stubborn.target_lane[1])))
+    assert stubborn.acceleration(1) == idm
+    stubborn.response[1] = 1.0
+    assert stubborn.acceleration(1) == idm and stubborn.refused[1] and not stubborn.shown[1]
 
 
 def test_response_starts_after_the_reaction_delay():
