@@ -170,18 +170,31 @@ STOPS = (int(signal.SIGINT), int(signal.SIGTERM))  # the signals that stop a job
 SIGNAL_BYTES = 4096  # signals a compiled call can see arrive (one byte each) between two stops consumed
 
 
-def _signal_file() -> tuple[int, np.ndarray]:
-    """A memory file (non-blocking, as signal.set_wakeup_fd needs) and its bytes as an array: guarded makes it the
+def _signal_file() -> tuple[int, np.ndarray, tuple]:
+    """A memory file (non-blocking, as signal.set_wakeup_fd needs), its bytes as an array and its (inode, device): guarded makes it the
     wakeup fd, to which Python's C-level handler writes each handled signal's number at once, one byte after another,
     also while a compiled call holds the interpreter; the long compiled loops (planner.zstep.stop_requested) read
     the array, passed as an argument (a numba global is frozen as a constant), and return early."""
     fd = os.memfd_create("signals", os.MFD_CLOEXEC)
     os.ftruncate(fd, SIGNAL_BYTES)
     os.set_blocking(fd, False)
-    return fd, np.frombuffer(mmap.mmap(fd, SIGNAL_BYTES), np.uint8)
+    return fd, np.frombuffer(mmap.mmap(fd, SIGNAL_BYTES), np.uint8), os.fstat(fd)[1:3]
 
 
-_SIGNAL_FD, SIGNALS = _signal_file()
+_SIGNAL_FD, SIGNALS, _SIGNAL_ID = _signal_file()  # _SIGNAL_ID (inode, device): whether the number still names this file
+
+
+def _own_signal_file() -> None:
+    """A signal file of this process's own where its number now names another file (a Ray worker redirects its log
+    onto the low numbers after the import that made ours): set_wakeup_fd refuses a blocking one, and a log is no
+    place for signal bytes."""
+    global _SIGNAL_FD, SIGNALS, _SIGNAL_ID
+    try:
+        ours = os.fstat(_SIGNAL_FD)[1:3] == _SIGNAL_ID
+    except OSError:
+        ours = False
+    if not ours:  # the number is another file's now: not ours to close
+        _SIGNAL_FD, SIGNALS, _SIGNAL_ID = _signal_file()
 
 
 def _clear_signals() -> None:
@@ -193,9 +206,9 @@ def _clear_signals() -> None:
 def _unshare_signals() -> None:
     """In a forked child, a signal file of its own (a fork shares the parent's), its wakeup fd where the parent's was:
     neither stops the other's compiled calls."""
-    global _SIGNAL_FD, SIGNALS
+    global _SIGNAL_FD, SIGNALS, _SIGNAL_ID
     wakeup = signal.set_wakeup_fd(-1)
-    parent, (_SIGNAL_FD, SIGNALS) = _SIGNAL_FD, _signal_file()
+    parent, (_SIGNAL_FD, SIGNALS, _SIGNAL_ID) = _SIGNAL_FD, _signal_file()
     signal.set_wakeup_fd(_SIGNAL_FD if wakeup == parent else wakeup)
     os.close(parent)
 
@@ -306,6 +319,7 @@ def guarded(fn):
         MODEL_FILES.clear()  # the model files this job reads, not those of a job run before it in this process
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
         if main:
+            _own_signal_file()
             _clear_signals()
             wakeup = signal.set_wakeup_fd(_SIGNAL_FD)
         try:

@@ -341,6 +341,28 @@ def test_the_compiled_loops_see_a_stop_signal_until_its_job_ends():
     assert seen == [False, True] and not guarded(lambda: stop_requested(jobs.SIGNALS))()  # the next job unstopped
 
 
+
+def test_a_job_whose_signal_file_number_another_file_took_still_sees_its_stop(tmp_path):
+    """A Ray worker redirects its log onto the number the import's signal file had: a job there makes its own file
+    instead of refusing to start (set_wakeup_fd: "the fd must be in non-blocking mode") or writing signals into the log."""
+    from planner.zstep import stop_requested
+
+    seen = []
+
+    def stopped():
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        finally:
+            seen.append(stop_requested(jobs.SIGNALS))
+
+    with open(tmp_path / "raylet.out", "w") as log:
+        os.dup2(log.fileno(), jobs._SIGNAL_FD)  # blocking, as a log is
+        with pytest.raises(SystemExit) as e:
+            guarded(stopped)()
+    assert e.value.code == 130 and seen == [True] and (tmp_path / "raylet.out").read_bytes() == b""
+    assert os.readlink(f"/proc/self/fd/{jobs._SIGNAL_FD}").startswith("/memfd:signals")
+
 MARKED_PLANNER = """
     import sys
     from bench import launch
