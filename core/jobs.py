@@ -305,6 +305,32 @@ def drop_empty_run_dir():
         parent.rmdir()
 
 
+def _start_job() -> tuple[bool, dict]:
+    """A job's start: unstopped, no model file read yet; on the main thread the stop handlers and this process's signal
+    file as the wakeup fd. Whether on the main thread, and what to restore: {signal or "wakeup": the previous}."""
+    main = threading.current_thread() is threading.main_thread()
+    _STOPPED.clear()  # a job starts unstopped, whatever stopped an earlier one in this process
+    MODEL_FILES.clear()  # the model files this job reads, not those of a job run before it in this process
+    if not main:
+        return False, {}
+    previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)}
+    _own_signal_file()
+    _clear_signals()
+    previous["wakeup"] = signal.set_wakeup_fd(_SIGNAL_FD)
+    return True, previous
+
+
+def _end_job(main: bool, previous: dict) -> None:
+    """A job's end: the handlers and wakeup fd _start_job replaced, restored; what stopped it stops nothing after it."""
+    if not main:
+        return
+    signal.set_wakeup_fd(previous.pop("wakeup"))
+    for s, handler in previous.items():
+        signal.signal(s, handler)
+    _STOPPED.clear()  # what stopped this job stops nothing after it (the next job, a test)
+    _clear_signals()
+
+
 def guarded(fn):
     """Run a job body; a UserError or a full disk becomes one 'error: ...' line on stderr and exit status 2 (a UserError's
     empty Hydra folder removed), SIGTERM and SIGINT one line and exit 128 + the signal number.
@@ -314,14 +340,9 @@ def guarded(fn):
     """
 
     def run(*args, **kwargs):
-        main = threading.current_thread() is threading.main_thread()
-        _STOPPED.clear()  # a job starts unstopped, whatever stopped an earlier one in this process
-        MODEL_FILES.clear()  # the model files this job reads, not those of a job run before it in this process
-        previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
-        if main:
-            _own_signal_file()
-            _clear_signals()
-            wakeup = signal.set_wakeup_fd(_SIGNAL_FD)
+        # the closure reaches this module's state only through its functions: a job sent to a Ray worker (Hydra's Ray
+        # launcher) is pickled by value with a copy of the globals it names, the parent's signal file among them
+        main, previous = _start_job()
         try:
             return fn(*args, **kwargs)
         except UserError as e:
@@ -341,12 +362,7 @@ def guarded(fn):
                   "are kept", file=sys.stderr)
             sys.exit(2)
         finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
-            if main:
-                signal.set_wakeup_fd(wakeup)
-                _STOPPED.clear()  # what stopped this job stops nothing after it (the next job, a test)
-                _clear_signals()
+            _end_job(main, previous)
 
     run.__name__, run.__doc__ = fn.__name__, fn.__doc__
     return run
