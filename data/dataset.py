@@ -401,10 +401,15 @@ def reveal(a: dict, dt: float) -> dict:
     latched will_yield (reveal_auc_<lag>s: what a predictor told each decision once shown would score; 0.5 where
     nothing shows), the share of the yielders shown (reveal_yielders_<lag>s) and the cars counted (reveal_cases_<lag>s);
     the same AUC and count for the car nearest behind the ego alone (nearest_behind; reveal_auc_nearest_<lag>s,
-    reveal_cases_nearest_<lag>s)."""
+    reveal_cases_nearest_<lag>s); and over every case the Brier score of the belief that knows each decision once shown
+    and otherwise the yield rate of the cars not shown, over the constant prior's (reveal_brier_ratio: a bound on what a
+    belief read from the windows reaches, fitted on the cases it scores)."""
     w, j, since, y = encroached(a)
     shown, nearest = a["shown"][w, j], nearest_behind(a, w, j)
-    out = {}
+    y_f = y.astype(float)
+    hidden = y_f[~shown].mean() if (~shown).any() else 0.0
+    prior = np.mean((y_f - y_f.mean()) ** 2) if len(y) else float("nan")
+    out = {"reveal_brier_ratio": float(np.mean((np.where(shown, 1.0, hidden) - y_f) ** 2) / prior) if prior else float("nan")}
     for lag in REVEAL_LAGS_S:
         at = since == int(round(lag / dt))
         out[f"reveal_auc_{lag:.1f}s"] = auc(shown[at], y[at])

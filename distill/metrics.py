@@ -189,7 +189,7 @@ def hypothesis_quality(predictor, a: dict, t_p: int, prior: float, dt: float, me
     out["belief_brier_prior"] = float(np.mean((prior - y) ** 2)) if len(w) else float("nan")
     out["belief_brier_ratio"] = out["belief_brier"] / out["belief_brier_prior"] if len(w) and out["belief_brier_prior"] else float("nan")
     out["belief_auc"] = auc(p, y)
-    out.update({k.replace("reveal_", "seen_"): v for k, v in reveal(a, dt).items() if k.startswith("reveal_auc")})
+    out.update({k.replace("reveal_", "seen_"): v for k, v in reveal(a, dt).items() if k.startswith(("reveal_auc", "reveal_brier"))})
     nearest = nearest_behind(a, w, j)
     for lag in BELIEF_LAGS_S:
         at = since == int(round(lag / dt))

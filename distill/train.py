@@ -343,7 +343,8 @@ def summary(name, table, r, cert):
                      + (f"; mean model: yield {r['ade_rollout_m_yielders_mean']:.3f}, stubborn {r['ade_rollout_m_stubborn_mean']:.3f}"
                         if "ade_rollout_m_yielders_mean" in r else ""))
         lines.append(f"belief on {r['n_belief_cases']} encroached cars: Brier {r['belief_brier']:.4f} vs constant prior "
-                     f"{r['belief_prior']:.2f}'s {r['belief_brier_prior']:.4f} (ratio {r['belief_brier_ratio']:.2f}); AUC "
+                     f"{r['belief_prior']:.2f}'s {r['belief_brier_prior']:.4f} (ratio {r['belief_brier_ratio']:.2f}; a belief told "
+                     f"each decision once shown: {r['seen_brier_ratio']:.2f}); AUC "
                      f"{r['belief_auc']:.3f}; at " + ", ".join(f"{lag:.1f}" for lag in metrics.BELIEF_LAGS_S)
                      + " s after the first encroachment: AUC " + " ".join(f"{r[f'belief_auc_{lag:.1f}s']:.2f}" for lag in metrics.BELIEF_LAGS_S)
                      + " (the data's reveal " + " ".join(f"{r[f'seen_auc_{lag:.1f}s']:.2f}" for lag in metrics.BELIEF_LAGS_S)

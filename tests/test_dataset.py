@@ -211,6 +211,11 @@ def test_the_exploring_ego_leans_deep_enough_for_the_car_behind_it_to_show_its_d
     assert r["reveal_auc_0.0s"] == 0.5 and r["reveal_cases_nearest_2.0s"] >= 40
     assert r["reveal_auc_nearest_2.0s"] > 0.85 and r["reveal_auc_nearest_1.6s"] > 0.8
     assert r["reveal_auc_2.0s"] < r["reveal_auc_nearest_2.0s"]  # cars further back follow the nearest: rarely shown
+    w, j, _, y = dataset.encroached(a)  # the Brier bound, computed here from its definition
+    shown, rate = a["shown"][w, j], y.mean()
+    told = np.where(shown, 1.0, y[~shown].mean())
+    assert r["reveal_brier_ratio"] == pytest.approx(np.mean((told - y) ** 2) / np.mean((rate - y) ** 2))
+    assert 0.5 < r["reveal_brier_ratio"] < 1.0  # a yield shows on a minority of the encroached windows
 
 
 def test_nearest_behind_is_the_encroached_car_closest_behind_the_ego():
