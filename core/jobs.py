@@ -604,7 +604,9 @@ def open_experiment(experiment: str) -> str:
 
     uri = tracking_uri()
     quick = {"MLFLOW_HTTP_REQUEST_TIMEOUT": str(STORE_TIMEOUT_S), "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
-    saved = {k: os.environ.get(k) for k in quick}
+    # set_tracking_uri also writes its URI to MLFLOW_TRACKING_URI: left absolute, the next tracking_uri() would make
+    # artifacts_beside write an absolute artifact path
+    saved = {k: os.environ.get(k) for k in (*quick, "MLFLOW_TRACKING_URI")}
     os.environ.update(quick)
     try:
         with store_lock(uri):

@@ -1,6 +1,7 @@
 """What the MLflow store holds, read back through mlflow.search_runs: a planner run tied to the run that made its model
 (by the file's sha256), with that model's accuracy beside its speed, names in one pattern, a few params, a store whose
 artifact paths travel with it, and models_dir as a runs:/ URI."""
+import os
 import re
 import sqlite3
 
@@ -105,6 +106,8 @@ def test_a_new_store_keeps_its_artifacts_beside_it(tmp_path, monkeypatch):
     before = mlflow.get_tracking_uri()
     try:
         jobs.open_experiment("moved")
+        jobs.open_experiment("moved")  # as a job does: once before its work, once in mlflow_run
+        assert os.environ["MLFLOW_TRACKING_URI"] == "sqlite:///mlflow.db"  # the user's, not MLflow's absolute one
     finally:
         mlflow.set_tracking_uri(before)  # the other tests' store
     with sqlite3.connect(tmp_path / "mlflow.db") as con:
