@@ -105,7 +105,7 @@ ceiling: $(STAMP)
 # 500 fresh dense worlds each (seeds from 40,000,000) and on 100 where no driver yields (scenario.cooperation=stubborn,
 # seeds from 41,000,000): outputs/safety/<time>/safety.md, collisions with 95% intervals and the seeds that collided;
 # exit 2 on any collision or crash. Needs `make demo`'s models. SAFETY_WORLDS/SAFETY_STUBBORN size it, SAFETY takes any
-# other override; the time per world is not yet measured.
+# other override. About 16 minutes on 2 cores (0.2-0.5 s a world; docs/findings.md, "Collisions").
 # On a Ray cluster: make safety SAFETY_WORLDS=10000 SAFETY_STUBBORN=2000 SAFETY="backend=ray ray.address=auto".
 SAFETY_WORLDS ?= 500
 SAFETY_STUBBORN ?= 100
