@@ -74,7 +74,7 @@ def accuracy_plot(dense: dict, gradients: dict, inter: dict, path: Path):
         source = name.split(" ", 1)[0]  # the row name's gradient source (label)
         suffix = compare.scored_as(source)
         grad = (np.nan,) * 3 if suffix is None else gradients[names[suffix]]["ramp_grad_rel_err"]
-        rows.append({"gradients": name, "method": method, "step_median_ms": r["step_ms_median"],
+        rows.append({"label": f"{name}/{method}", "gradients": name, "method": method, "step_median_ms": r["step_ms_median"],
                      "courteous_rate": r["courteous"], "courteous_lo": r["courteous_lo"], "courteous_hi": r["courteous_hi"],
                      **dict(zip((f"ramp_grad_rel_err{e}" for e in ENDS), grad)), **base,
                      "react_corr_jac": inter.get(source, {}).get("react_corr_jac", (np.nan,))[0],

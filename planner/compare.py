@@ -13,8 +13,11 @@ velocity: the `*_cv` metrics that run logs beside its own; a hypothesis model: i
 `surrogate` run for the surrogate's gradients, and the latest `interaction` run of the source (bench/interaction.py:
 react_* for its rollout response, react_*_jac for its first-order response).
 
+A run that records iterates for the surrogate's training (record_dir) is a data job and no row. Each row gets a short
+label (gradients/method/mpc/scenario, then only what tells rows apart: labels), which names its marker in compare.png.
 It prints a short table, the params that tell rows apart and the cells of SHORT (n_episodes, courteous-merge rate, t_merge,
-fallbacks, gradient error, step time), and writes every column to compare.csv.
+fallbacks, gradient error, step time), writes every column to compare.csv, and logs to MLflow the table without the
+columns equal in every row (those as the run's every_row.<column> params): the label, outcomes, speed, accuracy first.
 """
 import logging
 from pathlib import Path
@@ -157,14 +160,19 @@ def param_frame(runs: pd.DataFrame, columns, ignore) -> pd.DataFrame:
 
 def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs: pd.DataFrame, columns,
           interaction_runs: pd.DataFrame | None = None, ignore=()) -> pd.DataFrame:
-    """One row per combination of the compared params (param_frame): the runs pooled, episode-weighted outcomes with 95%
-    intervals, median step times, accuracy. Its param columns, `columns` then every other that differs between rows,
-    are listed in df.attrs["params"]."""
+    """One row per combination of the compared params (param_frame) of the runs that evaluate (not those recording
+    iterates: record_dir, counted in df.attrs["recorded"]): its short `label` first, the runs pooled, episode-weighted
+    outcomes with 95% intervals, median step times, accuracy. Its param columns, `columns` then every other that differs
+    between rows, are listed in df.attrs["params"]."""
     runs = planner_runs[planner_runs["status"] == "FINISHED"].copy() if not planner_runs.empty else planner_runs
     if "tags.mlflow.parentRunId" in runs:  # a parent run (method=both, a sweep) holds no episodes of its own
         runs = runs[~runs["run_id"].isin(set(runs["tags.mlflow.parentRunId"].dropna()))]
+    recorded = runs["params.record_dir"].notna() & (runs["params.record_dir"] != "None") if "params.record_dir" in runs \
+        else pd.Series(False, index=runs.index)
+    runs = runs[~recorded]  # a run that records its iterates (record_dir) makes a data set: no evaluation to compare
     if runs.empty:
-        raise UserError("no finished planner runs in the MLflow store: run `planner` first")
+        raise UserError("no finished planner runs in the MLflow store: run `planner` first"
+                        + (f" ({int(recorded.sum())} only recorded iterates: record_dir)" if recorded.any() else ""))
     interaction_runs = pd.DataFrame() if interaction_runs is None else interaction_runs
     keys = param_frame(runs, columns, ignore)
     group_by = list(keys.columns)
@@ -197,71 +205,124 @@ def table(planner_runs: pd.DataFrame, distill_runs: pd.DataFrame, surrogate_runs
     df = pd.DataFrame(rows)
     params = [*columns, *(p for p in group_by if p not in columns and df[p].nunique() > 1)]
     df = df[params + [c for c in df.columns if c not in group_by]].sort_values(params).reset_index(drop=True)
-    df.attrs["params"] = params
+    df.insert(0, "label", labels(df, params))
+    df.attrs["params"], df.attrs["recorded"] = params, int(recorded.sum())
     return df
 
 
-SHOWN = ("gradients", "method", "mpc", "scenario")  # what a marker's label says first
+SHOWN = ("gradients", "method", "mpc", "scenario")  # what every set-up's label says
+PER_PANEL = 6  # set-ups a panel draws: more get a row of panels per six
+ID_PREFIXES = ("sha256.", "model_run.")  # params holding a hash or a run id: a label shows their first 8 characters
 
 
-def label(r: pd.Series, varying) -> str:
-    """A row's marker label: its gradient source, method, mpc and scenario, then each other grouping param that varies
-    across rows (a model hash shortened to 8 characters)."""
-    head = "/".join(str(r[c]) for c in SHOWN if c in r and r[c] != "-")
-    short = lambda c: str(r[c])[:8] if c.startswith("sha256.") else str(r[c])
-    rest = ", ".join(f"{c.removeprefix('sha256.')}={short(c)}" for c in varying if c not in SHOWN)
-    return f"{head} ({rest})" if rest else head
+def labels(df: pd.DataFrame, params) -> list[str]:
+    """Each row's short label: its SHOWN values joined by '/', then those of `params` that tell rows apart beyond them
+    (a param the SHOWN values determine, such as the predictor of a gradient source, adds nothing): seed and episodes
+    as one seed range, a model file's hash or run id as its first 8 characters."""
+    head = [c for c in SHOWN if c in df]
+    follows = lambda c: bool(head) and df.groupby(head, dropna=False)[c].nunique(dropna=False).max() <= 1
+    extra = [c for c in params if c in df and c not in head and df[c].nunique() > 1 and not follows(c)]
+    seeds = any(c in extra for c in ("seed", "episodes")) and "seed" in df
+
+    def one(r: pd.Series) -> str:
+        parts = [seed_range(r)] if seeds else []
+        for c in extra:
+            if c in ("seed", "episodes"):
+                continue
+            short = c.startswith(ID_PREFIXES) and r[c] != "-"
+            parts.append(f"{c.split('.', 1)[1] if short else c}={str(r[c])[:8] if short else r[c]}")
+        name = "/".join(str(r[c]) for c in head if r[c] != "-")
+        return f"{name} ({', '.join(parts)})" if parts else name
+
+    return [one(r) for _, r in df.iterrows()]
 
 
-def plot(df: pd.DataFrame, path: Path, group_by=()):
-    """Against median MPC step time (ms), one marker per row, each labelled beside it (label) with its episode count:
-    gradient error (relative error of d b_i/dZ against teacher autodiff along ramps, 95% interval, the trivial baselines
-    as lines; along single coordinates for runs scored before the ramps), courteous-merge rate with its 95% Wilson
-    interval, and interaction fidelity of the gradient (react_corr_jac); a panel no row has a value for is left out."""
+def seed_range(r: pd.Series) -> str:
+    """A row's episode seeds: 'seed s', or 'seeds s-e' for a batch (its `episodes` param > 0)."""
+    n = int(r["episodes"]) if str(r.get("episodes", "-")).isdigit() else 0
+    return f"seeds {r['seed']}-{int(r['seed']) + n - 1}" if n and str(r["seed"]).isdigit() else f"seed {r['seed']}"
+
+
+def shared(df: pd.DataFrame, params) -> dict:
+    """{param: value} of `params` equal in every row (a model's hash or run id and '-' left out): what a figure's title
+    and the compare run's params say once instead of on every row."""
+    return {c: df[c].iloc[0] for c in params if c in df and df[c].nunique(dropna=False) == 1 and df[c].iloc[0] != "-"
+            and not c.startswith(ID_PREFIXES)}
+
+
+def plot(df: pd.DataFrame, path: Path, same: dict | None = None):
+    """Against median MPC step time (ms), one numbered marker per row (its `label` and episode count in the key below
+    the panels), PER_PANEL rows a panel: gradient error (relative error of d b_i/dZ against teacher autodiff along
+    ramps, 95% interval, the trivial baselines as lines; along single coordinates for runs scored before the ramps),
+    courteous-merge rate with its 95% Wilson interval, and interaction fidelity of the gradient (react_corr_jac); a
+    panel no row has a value for is left out. `same`: the params every row shares, said once in the title."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    varying = [c for c in group_by if c in df and df[c].nunique() > 1]
     g = "ramp_grad_rel_err" if df["ramp_grad_rel_err"].notna().any() else "grad_rel_err"
     panels = [p for p in (g, "courteous_rate", "react_corr_jac") if df[p].notna().any()] or ["courteous_rate"]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 5.2), squeeze=False)
+    chunks = [range(i, min(i + PER_PANEL, len(df))) for i in range(0, len(df), PER_PANEL)]
+    key_rows = -(-len(df) // len(panels))  # the key's lines: one column of entries per panel
+    fig, axes = plt.subplots(len(chunks), len(panels), figsize=(6.2 * len(panels), 4.8 * len(chunks) + 0.6 + 0.2 * key_rows),
+                             squeeze=False, layout="constrained", sharex=True)
     cmap = plt.get_cmap("tab10")
-    markers = "osD^v<>Ph*X"
-    for ax, col in zip(axes[0], panels):
-        for i, (_, r) in enumerate(df.iterrows()):
-            x, y = r["step_median_ms"], r[col]
-            if not (np.isfinite(x) and np.isfinite(y)):
-                continue
-            lo, hi = {g: (f"{g}_lo", f"{g}_hi"), "courteous_rate": ("courteous_lo", "courteous_hi")}.get(col, (None, None))
-            bar = [[y - r[lo]], [r[hi] - y]] if lo and np.isfinite(r[lo]) else None
-            ax.errorbar(x, y, yerr=bar, capsize=4, color=cmap(i % 10), marker=markers[i % len(markers)], ms=7, ls="none")
-            ax.annotate(f"{label(r, varying)}, {r['n_episodes']} ep", (x, y), xytext=(6, 4), textcoords="offset points",
-                        fontsize=7.5, color=cmap(i % 10))
-        ax.set(xscale="log", xlabel="median MPC step (ms)")
-        ax.axvline(200, color="tab:red", ls=":", lw=1, label="real time (one 0.2 s step)")
-        ax.grid(alpha=0.3)
-    for ax, col in zip(axes[0], panels):
-        if col == g:
-            for (name, s), ls in zip(BASELINES.items(), ("--", ":")):
-                level = df[f"{g}{s}"].dropna()
-                if len(level):
-                    ax.axhline(level.iloc[0], color="k", ls=ls, lw=1, label=f"{name} (baseline)")
-            ax.set(ylabel="relative error of d b_i/dZ vs teacher autodiff" + (" (along ramps)" if g != "grad_rel_err" else ""),
-                   title="gradient error vs speed")
-        elif col == "courteous_rate":
-            ax.set(ylabel="courteous-merge rate (share of episodes, 95% Wilson interval)", ylim=(-0.05, 1.05),
-                   title="outcome vs speed")
-        else:
-            ax.set(ylabel="react_corr_jac (first-order response vs the world's, correlation)", ylim=(-1.05, 1.05),
-                   title="interaction fidelity vs speed")
-        ax.legend(fontsize=8, loc="best")
-    fig.suptitle(f"{len(df)} set-ups, {int(df['n_episodes'].sum())} episodes: each marker gradients/method/mpc/scenario",
-                 fontsize=10)
-    fig.tight_layout()
+    markers = "osD^v<>"
+    handles = []
+    for row, chunk in zip(axes, chunks):
+        for ax, col in zip(row, panels):
+            for k, i in enumerate(chunk):
+                r = df.iloc[i]
+                x, y = r["step_median_ms"], r[col]
+                if not (np.isfinite(x) and np.isfinite(y)):
+                    continue
+                lo, hi = {g: (f"{g}_lo", f"{g}_hi"), "courteous_rate": ("courteous_lo", "courteous_hi")}.get(col, (None, None))
+                bar = [[y - r[lo]], [r[hi] - y]] if lo and np.isfinite(r[lo]) else None
+                ax.errorbar(x, y, yerr=bar, capsize=4, color=cmap(k), marker=markers[k], ms=7, ls="none")
+                ax.annotate(str(i + 1), (x, y), xytext=(5, 3), textcoords="offset points", fontsize=8, color=cmap(k))
+            ax.set(xscale="log", xlabel="median MPC step (ms)")
+            ax.margins(x=0.15, y=0.08)  # room for the numbers beside the outermost markers
+            ax.axvline(200, color="tab:red", ls=":", lw=1, label="real time (one 0.2 s step)")
+            ax.grid(alpha=0.3)
+            if col == g:
+                for (name, s), ls in zip(BASELINES.items(), ("--", ":")):
+                    level = df[f"{g}{s}"].dropna()
+                    if len(level):
+                        ax.axhline(level.iloc[0], color="k", ls=ls, lw=1, label=f"{name} (baseline)")
+                ax.set(ylabel="rel. error of d b_i/dZ vs teacher autodiff" + (" (ramps)" if g != "grad_rel_err" else ""),
+                       title="gradient error vs speed")
+            elif col == "courteous_rate":
+                ax.set(ylabel="courteous-merge rate (95% Wilson interval)", ylim=(-0.05, 1.05), title="outcome vs speed")
+            else:
+                ax.set(ylabel="react_corr_jac (first-order response vs world's)", ylim=(-1.05, 1.05),
+                       title="interaction fidelity vs speed")
+            ax.legend(fontsize=7.5, loc="best")
+        handles += [Line2D([], [], color=cmap(k), marker=markers[k], ls="none") for k in range(len(chunk))]
+    fig.legend(handles, [f"{i + 1}: {df['label'].iloc[i]}, {df['n_episodes'].iloc[i]} ep" for i in range(len(df))],
+               loc="outside lower center", ncol=len(panels), fontsize=8, frameon=False)
+    same = same or {}
+    seeds = lambda: seed_range(same) if "episodes" in same else f"seeds from {same['seed']}"  # batches of other sizes
+    said = ", ".join(seeds() if k == "seed" else f"{k}={v}" for k, v in same.items()
+                     if k not in SHOWN and not (k == "episodes" and "seed" in same))
+    title = f"{len(df)} set-ups, {int(df['n_episodes'].sum())} episodes; each labelled gradients/method/mpc/scenario" + \
+        (f"; every set-up: {said}" if said else "")
+    fig.suptitle("\n".join(textwrap.wrap(title, int(12 * 6.2 * len(panels)))), fontsize=9)  # 9 pt: 14 characters an inch
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def logged(df: pd.DataFrame, params) -> tuple[pd.DataFrame, dict]:
+    """The table compare logs to MLflow (log_table) and the values it leaves out: `label` first, then the outcome, speed
+    and accuracy columns, the params that tell rows apart and the runs; a column with one value in every row (of a
+    table of several rows; of one row: its params and its empty cells) is left out and returned as {column: value}."""
+    order = ["label", *(c for c in df if c not in params and c not in ("label", "runs")), *params, "runs"]
+    constant = lambda c: df[c].nunique(dropna=False) == 1 and (len(df) > 1 or c in params or df[c].isna().all())
+    out = [c for c in order if c == "label" or not constant(c)]
+    return df[out], {c: df[c].iloc[0] for c in order if c not in out and pd.notna(df[c].iloc[0])}
 
 
 def search(experiment: str, scenario=None) -> pd.DataFrame:
@@ -320,12 +381,15 @@ def run(cfg: DictConfig) -> pd.DataFrame:
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     df.to_csv(out / "compare.csv", index=False)
-    plot(df, out / "compare.png", group_by)
-    name = f"compare-{cfg.experiment}-{OmegaConf.select(cfg, 'scenario.name') or 'every scenario'}"
-    with mlflow_run("compare", cfg, run_name=name):
+    plot(df, out / "compare.png", shared(df, group_by))
+    experiment = "" if cfg.experiment == "planner" else f"{cfg.experiment}-"
+    name = f"compare-{experiment}{OmegaConf.select(cfg, 'scenario.name') or 'all'}-{int(df['n_runs'].sum())}runs"
+    with mlflow_run("compare", cfg, run_name=name, recorded_runs_left_out=df.attrs["recorded"]):
         import mlflow
 
-        mlflow.log_table(df.astype(object).where(df.notna(), None), "compare_table.json")  # MLflow's own table view
+        table_, same = logged(df, group_by)
+        mlflow.log_params({f"every_row.{k}": v for k, v in same.items()})  # said once, not in each row of the table
+        mlflow.log_table(table_.astype(object).where(table_.notna(), None), "compare_table.json")  # MLflow's table view
         mlflow.log_artifact(str(out / "compare.csv"))
         mlflow.log_artifact(str(out / "compare.png"))
     lead = [c for c in cfg.columns if c in df]

@@ -55,12 +55,12 @@ def test_table_weights_episodes_and_picks_latest_accuracy(store, caplog):
     assert (df["grad_rel_err_cv"] == 0.34).all() and (df["react_rel_err_mean"] == 1.1).all()  # the baselines on every row
     assert t["ade_1step_m"] == 0.1 and t["ade_rollout_m"] == 0.5 and t["n_episodes"] == 1 and t["step_median_ms"] == 900.0
     assert (store / "compare.png").read_bytes()[:4] == b"\x89PNG"
-    assert (store / "compare.csv").read_text().splitlines()[0].startswith("scenario,world,gradients,predictor,method")
+    assert (store / "compare.csv").read_text().splitlines()[0].startswith("label,scenario,world,gradients,predictor,method")
     assert s["n_runs"] == 4 and len(s["runs"].split()) == 4
     assert "surrogate" in caplog.text and "0.34" in caplog.text  # the cv baseline printed beside the rows
     runs = mlflow.search_runs(experiment_names=["compare"])
     assert len(runs) == 1 and runs.iloc[0]["status"] == "FINISHED"
-    assert runs.iloc[0]["tags.mlflow.runName"] == "compare-planner-every scenario"
+    assert runs.iloc[0]["tags.mlflow.runName"] == "compare-all-5runs"  # what it compares: every scenario, 5 planner runs
     logged = {f.path for f in mlflow.artifacts.list_artifacts(run_id=runs.iloc[0]["run_id"])}
     assert {"compare_table.json", "compare.csv", "compare.png"} <= logged  # the table in MLflow's own table view too
 
@@ -124,3 +124,82 @@ def test_runs_whose_models_differ_are_never_pooled(store):
         log("planner", {**base, "sha256.surrogate.onnx": digest, "models_dir": "models"}, {**ok, "C_max": C})
     df = run(compose_cfg("compare", [f"out_dir={store}", "scenario=dense"])).set_index("sha256.surrogate.onnx")
     assert list(df["n_runs"]) == [2, 1] and list(df["C_max"]) == [274.8, 70.4]
+    assert list(df["label"]) == ["surrogate/admm/dense (surrogate.onnx=aaaaaaaa)", "surrogate/admm/dense (surrogate.onnx=bbbbbbbb)"]
+    assert mlflow.search_runs(experiment_names=["compare"]).iloc[0]["tags.mlflow.runName"] == "compare-dense-3runs"
+
+
+def demo_store():
+    """Planner runs as `make demo` logs them (each run's every top-level setting, the model hashes and model runs of the
+    sources that read models), the iterate-recording run of its MODELS among them."""
+    same = {"scenario": "dense", "world": "reactive", "method": "admm", "zstep": "sqp", "solver": "osqp", "mpc": "interactive",
+            "linearize": "last_observed", "mpc.T_p": "20", "mpc.admm.rho": "100", "max_steps": "600", "models_dir": "models",
+            "n_jobs": "1", "plots": "False"}
+    models = {"cv": {}, "student": {"sha256.student.ckpt": "c" * 64, "model_run.student.ckpt": "d" * 32},
+              "surrogate": {"sha256.surrogate.onnx": "e" * 64, "model_run.surrogate.onnx": "f" * 32}}
+    for g, courteous, ms in [("cv", 0.25, 3.1), ("student", 0.5, 41.0), ("surrogate", 0.75, 12.5)]:
+        log("planner", {**same, **models[g], "gradients": g, "predictor": "student" if g != "cv" else "cv", "seed": "2000000",
+                        "episodes": "4", "record_dir": "None"},
+            {"episodes": 4, "courteous": courteous, "merged": 1.0, "collision": 0.0, "step_median_ms": ms, "step_p95_ms": 2 * ms})
+    log("planner", {**same, **models["student"], "gradients": "student", "predictor": "student", "seed": "5000000",
+                    "episodes": "8", "record_dir": "data/small/iterates"},
+        {"episodes": 8, "courteous": 0.0, "merged": 0.5, "collision": 0.0, "step_median_ms": 40.0, "step_p95_ms": 80.0})
+
+
+def figure_of(monkeypatch):
+    """The figure compare draws, kept open: [it] once compare ran."""
+    import matplotlib.pyplot as plt
+
+    kept = []
+    monkeypatch.setattr(plt, "close", kept.append)
+    return kept
+
+
+def test_each_setup_has_a_short_label_inside_the_figure_and_recording_runs_are_no_rows(store, monkeypatch):
+    demo_store()
+    kept = figure_of(monkeypatch)
+    df = run(compose_cfg("compare", [f"out_dir={store}"]))
+    # the recording run (record_dir: training data for the surrogate) is a data job, no second student row
+    assert list(df["label"]) == ["cv/admm/interactive/dense", "student/admm/interactive/dense", "surrogate/admm/interactive/dense"]
+    assert list(df["n_episodes"]) == [4, 4, 4]
+    (fig,) = kept
+    renderer = fig.canvas.get_renderer()
+    inside = lambda box, frame: box.x0 >= frame.x0 - 1 and box.x1 <= frame.x1 + 1 and box.y0 >= frame.y0 - 1 and box.y1 <= frame.y1 + 1
+    legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes)]
+    texts = [fig._suptitle, *(t for lg in legends for t in lg.get_texts()),
+             *(t for ax in fig.axes for t in (ax.title, ax.xaxis.label, ax.yaxis.label, *ax.texts))]
+    assert all(inside(t.get_window_extent(renderer), fig.bbox) for t in texts)  # nothing cut off at the edges
+    for ax in fig.axes:
+        assert all(inside(t.get_window_extent(renderer), ax.bbox) for t in ax.texts)  # the markers' numbers in their panel
+        assert len(ax.containers) == 3
+    key = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert key == ["1: cv/admm/interactive/dense, 4 ep", "2: student/admm/interactive/dense, 4 ep",
+                   "3: surrogate/admm/interactive/dense, 4 ep"]
+    assert "seeds 2000000-2000003" in fig._suptitle.get_text()  # what every set-up shares, said once
+
+
+def test_the_logged_table_starts_with_the_label_and_outcomes_and_says_shared_values_once(store):
+    demo_store()
+    run(compose_cfg("compare", [f"out_dir={store}"]))
+    (r,) = [r for _, r in mlflow.search_runs(experiment_names=["compare"]).iterrows()]
+    assert r["tags.mlflow.runName"] == "compare-all-3runs" and r["params.recorded_runs_left_out"] == "1"
+    logged = mlflow.artifacts.load_dict(f"runs:/{r['run_id']}/compare_table.json")
+    columns, rows = logged["columns"], logged["data"]
+    assert columns[:3] == ["label", "courteous_rate", "courteous_lo"] and columns[-1] == "runs"
+    assert columns.index("step_median_ms") < columns.index("gradients")  # speed (and accuracy) before the params
+    assert all(len({str(row[i]) for row in rows}) > 1 for i in range(len(columns)))  # no column equal in every row
+    assert (r["params.every_row.scenario"], r["params.every_row.world"], r["params.every_row.n_episodes"]) == ("dense", "reactive", "4")
+    assert r["params.every_row.seed"] == "2000000" and r["params.every_row.zstep"] == "sqp"
+    columns_csv = (store / "compare.csv").read_text().splitlines()[0].split(",")
+    assert {"scenario", "world", "n_episodes", "label"} <= set(columns_csv)  # compare.csv keeps every column
+
+
+def test_more_setups_than_a_panel_holds_get_more_panels(store, monkeypatch):
+    for T_p in range(8, 16):  # eight set-ups told apart by one param
+        log("planner", {"method": "admm", "scenario": "two_lane", "gradients": "cv", "mpc.T_p": str(T_p)},
+            {"merged": 1, "courteous": 1, "collision": 0, "step_median_ms": float(T_p), "step_p95_ms": 2.0 * T_p})
+    kept = figure_of(monkeypatch)
+    df = run(compose_cfg("compare", [f"out_dir={store}"]))
+    assert list(df["label"]) == [f"cv/admm/two_lane (mpc.T_p={t})" for t in range(10, 16)] + \
+        ["cv/admm/two_lane (mpc.T_p=8)", "cv/admm/two_lane (mpc.T_p=9)"]  # as the params sort: strings
+    (fig,) = kept
+    assert sorted(len(ax.containers) for ax in fig.axes) == [2, 6]  # one panel of courteous rate per six set-ups
