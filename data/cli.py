@@ -23,7 +23,8 @@ def run(cfg: DictConfig) -> dict:
     validate.check(cfg, "make_dataset")
     scenario = instantiate(cfg.scenario, _convert_="all")
     root = writable(cfg.out_dir, "out_dir") / cfg.dataset.name
-    with mlflow_run("dataset", cfg, run_name=cfg.dataset.name):
+    d = cfg.dataset  # the name alone is shared by every build of a preset (a demo's smaller one too)
+    with mlflow_run("dataset", cfg, run_name=f"{d.name}-{scenario.name}-episodes{d.episodes}-seed{d.seed}"):
         with tempfile.TemporaryDirectory() as tmp:
             for e, seed in enumerate(dataset.episode_seeds(cfg.dataset.seed, cfg.plot_episodes)):  # the dataset's first
                 states, _, world, _, _ = dataset.explore(scenario, dict(cfg.dataset.policy), seed, cfg.dataset.steps)

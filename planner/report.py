@@ -57,12 +57,12 @@ def mlflow_metrics(m: dict, dt: float) -> dict:
 
 def run_name(method: str, source, cfg, scenario) -> str:
     """A planner run's MLflow name: method, gradient source (+ its predictor where not the source's own), mpc, scenario,
-    seed (a batch: its seed range)."""
+    seed (a batch: its seed range), and `-record` for a run that records its iterates (record_dir: a data job)."""
     from planner.gradients import predictor_of
 
     src = source.name if source.predictor.name == predictor_of(source.name) else f"{source.name}+{source.predictor.name}"
     seeds = f"seed{cfg.seed}" if not cfg.episodes else f"seeds{cfg.seed}-{cfg.seed + cfg.episodes - 1}"
-    return f"{method}-{src}-{cfg.mpc.name}-{scenario.name}-{seeds}"
+    return f"{method}-{src}-{cfg.mpc.name}-{scenario.name}-{seeds}{'-record' if cfg.record_dir else ''}"
 
 
 def write_csv(ep, path):

@@ -14,6 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from conftest import compose_cfg
 from core import jobs
 from planner import cli
+from planner.compare import run as compare
 
 METRIC = re.compile(r"^[a-zA-Z0-9]+(_[a-zA-Z0-9]+)*$")
 UNITS = {"t_merge": "t_merge_s", "ttc_min": "ttc_min_s", "b_imposed_max": "b_imposed_max_mps2",
@@ -62,6 +63,23 @@ def test_a_planner_run_names_its_model_run_and_carries_its_accuracy(tiny_models,
     assert [m.name for m in logged] == ["student"]  # the MLflow model (mlflow.onnx): models_dir=models:/<its id> too
     plan(tmp_path / "by_id", f"models:/{logged[0].model_id}")
     assert runs_of(tmp_path / "by_id").iloc[0]["params.sha256.student.ckpt"] == digest
+
+
+def test_a_run_recording_iterates_says_so_and_compare_leaves_it_out(store, tmp_path):
+    for folder, record in (("eval", "null"), ("record", str(tmp_path / "iterates"))):  # as make demo's MODELS records
+        cli.run(compose_cfg("planner", ["scenario=two_lane", "gradients=cv", "max_steps=3", "plots=false",
+                                        f"out_dir={tmp_path / folder}", f"record_dir={record}"]))
+    runs = mlflow.search_runs(experiment_names=["planner"]).set_index("params.record_dir")
+    assert runs.loc["None", "tags.mlflow.runName"] == "admm-cv-paper-two_lane-seed0"
+    assert runs.loc[str(tmp_path / "iterates"), "tags.mlflow.runName"] == "admm-cv-paper-two_lane-seed0-record"
+    df = compare(compose_cfg("compare", [f"out_dir={tmp_path}"]))
+    assert df["runs"].tolist() == [runs.loc["None", "run_id"][:8]] and df["label"].tolist() == ["cv/admm/paper/two_lane"]
+
+
+def test_dataset_runs_are_named_by_what_they_hold(tiny_dataset):
+    d = compose_cfg("make_dataset", ["dataset=tiny"]).dataset
+    made = mlflow.search_runs(experiment_names=["dataset"], filter_string=f"params.out_dir = '{tiny_dataset.parent}'")
+    assert made["tags.mlflow.runName"].tolist() == [f"tiny-dense-episodes{d.episodes}-seed{d.seed}"]  # not just `tiny`
 
 
 def test_a_models_uri_with_no_models_is_one_line(tmp_path, capsys):
