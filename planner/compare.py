@@ -318,11 +318,12 @@ def plot(df: pd.DataFrame, path: Path, same: dict | None = None):
 def logged(df: pd.DataFrame, params) -> tuple[pd.DataFrame, dict]:
     """The table compare logs to MLflow (log_table) and the values it leaves out: `label` first, then the outcome, speed
     and accuracy columns, the params that tell rows apart and the runs; a column with one value in every row (of a
-    table of several rows; of one row: its params and its empty cells) is left out and returned as {column: value}."""
+    table of several rows; of one row: its params and its empty cells) is left out and returned as {column: value}
+    (those no run logged, NaN or '-', not at all)."""
     order = ["label", *(c for c in df if c not in params and c not in ("label", "runs")), *params, "runs"]
     constant = lambda c: df[c].nunique(dropna=False) == 1 and (len(df) > 1 or c in params or df[c].isna().all())
     out = [c for c in order if c == "label" or not constant(c)]
-    return df[out], {c: df[c].iloc[0] for c in order if c not in out and pd.notna(df[c].iloc[0])}
+    return df[out], {c: df[c].iloc[0] for c in order if c not in out and pd.notna(df[c].iloc[0]) and df[c].iloc[0] != "-"}
 
 
 def search(experiment: str, scenario=None) -> pd.DataFrame:
