@@ -41,11 +41,26 @@ except ImportError as e:  # an optional extra: one line naming it, where a highw
     raise UserError(f"highway-env is not installed ({e.name} missing): pip install -e '.[highway]'") from None
 
 ENV_ID = "admm-nnmpc/DenseMerge-v0"
-ENV_CHECKS = {  # the env's own config (validate's rules; the scenario's are validate.SCENARIO)
-    "simulation_frequency": validate.Int(1), "policy_frequency": validate.Int(1), "duration": validate.Int(1),
-    "observation.vehicles_count": validate.Int(1, optional=True), "observation.view": validate.Real(0, lo_open=True, optional=True),
-    "speed_limit": validate.POS,
+MAX_SIMULATION_HZ = 1000  # highway-env's sub-steps per second, each moving every car: 15 by default
+ENV_CHECKS = {  # the env's own config (validate's rules; the scenario's are validate.SCENARIO), sizes bounded as the planner's
+    "simulation_frequency": validate.Int(1, MAX_SIMULATION_HZ), "policy_frequency": validate.Int(1),
+    "duration": validate.Int(1, validate.MAX_STEPS),  # decisions, as the planner's max_steps
+    "observation.vehicles_count": validate.Int(1, validate.MAX_SLOTS + 1, optional=True),  # the ego and a window's cars
+    "observation.view": validate.Real(0, lo_open=True, optional=True), "speed_limit": validate.POS,
 }
+ACTION_CHECKS = {"action.type": validate.OneOf(("ContinuousAction",)), "action.acceleration_range": validate.Range(strict=True),
+                 "action.steering_range": validate.Range(strict=True)}  # m/s^2 and rad, onto [-1, 1]
+
+
+def check_action(action) -> None:
+    """One UserError unless `action` is a ContinuousAction config whose acceleration_range (m/s^2) and steering_range
+    (rad) are each [low, high], low < high."""
+    if not isinstance(action, dict):
+        raise UserError(f"action={action!r}: {ENV_ID}'s action config is a dict of type ContinuousAction, acceleration_range "
+                        "and steering_range")
+    plain = {k: list(v) if isinstance(v, (list, tuple, np.ndarray)) else v for k, v in action.items()
+             if f"action.{k}" in ACTION_CHECKS}  # highway-env's other keys (clip, speed_range) are its to check
+    validate.check(OmegaConf.create({"action": plain}), ACTION_CHECKS)
 
 
 def to_ours(states_hw) -> np.ndarray:
@@ -127,15 +142,13 @@ class DenseMergeEnv(AbstractEnv):
 
     def check(self):
         """One UserError for a config value this merge cannot honour."""
-        c, a = self.config, self.config["action"]
+        c = self.config
         plain = {k: c[k] for k in ("simulation_frequency", "policy_frequency", "duration", "speed_limit")}
+        if not isinstance(c["observation"], dict):
+            raise UserError(f"observation={c['observation']!r}: {ENV_ID}'s observation config is a dict of type States, "
+                            "vehicles_count and view")
         validate.check(OmegaConf.create({**plain, "observation": dict(c["observation"])}), ENV_CHECKS)
-        if a.get("type") != "ContinuousAction":
-            raise UserError(f"action.type={a.get('type')}: {ENV_ID} takes ContinuousAction ([acceleration, steering])")
-        for key in ("acceleration_range", "steering_range"):
-            lo, hi = a.get(key, (0, 0))
-            if not lo < hi:
-                raise UserError(f"action.{key}={[lo, hi]}: needs low < high")
+        check_action(c["action"])
         if c["simulation_frequency"] % c["policy_frequency"]:
             raise UserError(f"policy_frequency={c['policy_frequency']}: must divide simulation_frequency={c['simulation_frequency']}")
 
@@ -178,6 +191,10 @@ class DenseMergeEnv(AbstractEnv):
             overrides = self.config["overrides"]
             if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
                 raise UserError(f"overrides={overrides!r}: a list of overrides of the scenario, such as ['scenario.x_ref=300']")
+            outside = [o for o in overrides if not o.lstrip("+~").startswith("scenario.")]
+            if outside:  # Hydra's own line names no scope ("No match in the defaults list")
+                raise UserError(f"overrides={outside}: {ENV_ID} takes overrides of the scenario only (scenario.<key>=...); "
+                                "the planner's go to planner.gym_policy.MergePolicy")
             check_overrides(f"scenario/{sc}", overrides)
             cfg = job_config(f"scenario/{sc}", overrides)
             validate.check(cfg, validate.SCENARIO)

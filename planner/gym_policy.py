@@ -18,7 +18,7 @@ import numpy as np
 
 from core import validate
 from core.jobs import UserError, build, check_overrides
-from data.highway import ENV_ID, DenseMergeEnv, to_action, to_ours
+from data.highway import ENV_ID, DenseMergeEnv, check_action, to_action, to_ours
 from data.perception import slot_ids
 from data.world import backfill
 from planner.mpc import Observation
@@ -48,7 +48,9 @@ class MergePolicy:
             raise UserError("gradients=oracle reads the running world; a gymnasium policy has only observations")
         self.step = build(cfg.method[methods[0]])
         self.T_obs, self.n_slots, self.dt = cfg.T_obs, cfg.n_slots, self.scenario.params.dt
-        action = action or DenseMergeEnv.default_config()["action"]
+        default = DenseMergeEnv.default_config()["action"]
+        action = default if action is None else {**default, **action} if isinstance(action, dict) else action
+        check_action(action)  # the ranges given, the env's default for any left out
         self.ranges = action["acceleration_range"], action["steering_range"]
         self.pasts = self.seen = None
         self.last = None  # the last planning step's result (fallback reason, cost, iterations)

@@ -118,7 +118,7 @@ def test_bad_input_is_one_clear_line():
         MergePolicy(["gradients=cv", "method=admm"])(np.zeros((24, 6)))
     with pytest.raises(UserError, match="observation.type=Kinematics"):
         env(observation={"type": "Kinematics"})
-    with pytest.raises(UserError, match=r"action.steering_range=\[0.5, -0.5\]: needs low < high"):
+    with pytest.raises(UserError, match=r"action.steering_range=\[0.5, -0.5\]: must be \[low, high\] with low < high"):
         env(action={"type": "ContinuousAction", "acceleration_range": [-5, 5], "steering_range": [0.5, -0.5]})
     with pytest.raises(UserError, match="policy_frequency=4: must divide simulation_frequency=15"):
         env(policy_frequency=4)
@@ -136,9 +136,21 @@ def test_bad_input_is_one_clear_line():
     ({"scenario": "nosuch"}, "scenario=nosuch: unknown; choose one of dense, "),
     ({"overrides": "scenario.x_ref=300"}, "overrides='scenario.x_ref=300': a list of overrides of the scenario"),
     ({"overrides": ["scenario.nosuch=1"]}, "unknown key 'scenario.nosuch'"),
-    ({"observation": {"type": "States", "vehicles_count": 0}}, "observation.vehicles_count=0: must be an integer >= 1"),
-    ({"simulation_frequency": 0}, "simulation_frequency=0: must be an integer >= 1"),
+    ({"observation": {"type": "States", "vehicles_count": 0}}, "observation.vehicles_count=0: must be an integer in [1, 51]"),
+    ({"simulation_frequency": 0}, "simulation_frequency=0: must be an integer in [1, 1000]"),
     ({"policy_frequency": 0}, "policy_frequency=0: must be an integer >= 1"),
+    ({"overrides": ["gradients=cv"]}, "overrides=['gradients=cv']: admm-nnmpc/DenseMerge-v0 takes overrides of the scenario only"),
+    # sizes where memory or time would explode: 45 GB of observation rows, 10^9 sub-steps of a decision
+    ({"observation": {"type": "States", "vehicles_count": 10**9}}, "observation.vehicles_count=1000000000: must be an integer in [1, 51]"),
+    ({"simulation_frequency": 10**9}, "simulation_frequency=1000000000: must be an integer in [1, 1000]"),
+    ({"duration": 10**12}, "duration=1000000000000: must be an integer in [1, 10000]"),
+    ({"observation": "States"}, "observation='States': admm-nnmpc/DenseMerge-v0's observation config is a dict"),
+    ({"action": "abc"}, "action='abc': admm-nnmpc/DenseMerge-v0's action config is a dict"),
+    ({"action": {"acceleration_range": [-5, 5], "steering_range": [-1, 1]}}, "action.type is missing from the config"),
+    ({"action": {"type": "ContinuousAction", "acceleration_range": [1], "steering_range": [-1, 1]}},
+     "action.acceleration_range=[1]: must be [low, high] with low < high"),
+    ({"action": {"type": "ContinuousAction", "acceleration_range": ["a", "b"], "steering_range": [-1, 1]}},
+     "action.acceleration_range=['a', 'b']: must be [low, high] with low < high, both numbers"),
 ])
 def test_the_envs_config_errors_are_one_line_naming_the_key(config, line):
     with pytest.raises(UserError) as e:
@@ -160,6 +172,18 @@ def test_the_policys_config_errors_are_one_line(overrides, line):
     with pytest.raises(UserError) as e:
         MergePolicy(overrides)
     assert str(e.value).startswith(line) and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("action,line", [
+    ("abc", "action='abc': admm-nnmpc/DenseMerge-v0's action config is a dict"),
+    ({"acceleration_range": [5, -5]}, "action.acceleration_range=[5, -5]: must be [low, high] with low < high"),
+    ({"steering_range": [0.1]}, "action.steering_range=[0.1]: must be [low, high]"),
+])
+def test_the_policys_action_config_is_checked_as_the_envs(action, line):
+    with pytest.raises(UserError) as e:
+        MergePolicy(["gradients=cv"], action=action)
+    assert str(e.value).startswith(line) and "\n" not in str(e.value)
+    assert MergePolicy(["gradients=cv"], action={"steering_range": [-0.5, 0.5]}).ranges == ([-5.0, 5.0], [-0.5, 0.5])  # the rest default
 
 
 def test_the_policy_refuses_ids_that_would_mix_cars_and_a_new_episode_without_reset():
