@@ -21,6 +21,9 @@ MAX_T_OBS = 21  # observed steps of a window
 MAX_SLOTS = 50  # other cars in a window (the dense stream has 21 cars)
 MAX_ITERS = 10_000  # solver iterations of one solve (ADMM's, a Z-step's): 50 ADMM iterations cost 20 CPU-s at T_p 200
 MAX_SAMPLES = 1_000_000  # windows or states a job draws at once (a surrogate's Jacobian label: 6.4 kB at the default window)
+MAX_FOLLOWERS = 1000  # cars of a dense stream (20 here): 10^7 drew 9 GB of drivers before its first step
+MAX_WIDTH = 4096  # units of one network layer (256 the widest here): a teacher of 10^6 asked torch for 12 TB
+MAX_DEPTH = 16  # layers of one network (3 the deepest here)
 CORES = len(os.sched_getaffinity(0))  # the cores this process may run on: one worker process each, every worker its own models
 
 
@@ -152,20 +155,22 @@ class Range:
 
 @dataclass(frozen=True)
 class ListOf:
-    """A list of values each obeying `item`, `length` long if given, at least `at_least` long."""
+    """A list of values each obeying `item`, `length` long if given, at least `at_least` and at most `at_most` long."""
 
     item: object
     length: int | None = None
     at_least: int = 0
+    at_most: int | None = None
     optional: bool = False
     nullable: bool = False
 
     def ok(self, v):
         return isinstance(v, list) and (self.length is None or len(v) == self.length) and len(v) >= self.at_least \
-            and all(self.item.ok(x) for x in v)
+            and (self.at_most is None or len(v) <= self.at_most) and all(self.item.ok(x) for x in v)
 
     def allowed(self):
-        size = f" of {self.length}" if self.length else f" of at least {self.at_least}" if self.at_least else ""
+        least, most = f" of at least {self.at_least}" if self.at_least else "", f" of at most {self.at_most}" if self.at_most else ""
+        size = f" of {self.length}" if self.length else least + (most.replace(" of", " and") if least else most)
         return f"a list{size}, each {self.item.allowed()}"
 
 
@@ -257,6 +262,8 @@ PROB = Real(0, 1)
 SEED = Int(0, SEED_MAX)
 N_JOBS = Int(-1, CORES, but=(0,))  # joblib: -1 every core (of a Ray cluster too), never 0, never more processes than cores
 HORIZON = Int(1, MAX_T_P)
+WIDTH = Int(1, MAX_WIDTH)  # units of a layer
+WIDTHS = ListOf(WIDTH, at_least=1, at_most=MAX_DEPTH)  # units of each layer
 EPISODES = Int(1, MAX_EPISODES)
 COST = ("lambda_div", "lambda_v", "lambda_delta", "lambda_a", "lambda_ddelta", "lambda_da")
 # the predictors that load a trained model of their own from models_dir (conf/predictor/): the ones `distill` trains
@@ -271,7 +278,7 @@ PAPER = {  # conf/paper/table1.yaml, shared by distill, surrogate and planner
 }
 
 SCENARIO = {  # conf/scenario/: the physics and the courtesy threshold every scenario shares, the dense stream's promise
-    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.merge_tol": POS, "scenario.x_ref": Real(), "scenario.platoon_x": Real(), "scenario.followers": Int(1, optional=True),
+    "scenario.b_max": POS, "scenario.b_safe": POS, "scenario.merge_tol": POS, "scenario.x_ref": Real(), "scenario.platoon_x": Real(), "scenario.followers": Int(1, MAX_FOLLOWERS, optional=True),
     "scenario.min_behind_s": Real(0, optional=True), "scenario.safety_stretch": Real(1, optional=True),
     "scenario.road.lanes": Int(2), **{f"scenario.road.{k}": POS for k in ("lane_width", "car_length", "car_width")},
     **{f"scenario.params.{k}": POS for k in ("dt", "l_f", "l_r")}, "scenario.v_ref": NONNEG,
@@ -336,6 +343,7 @@ DISTILL = {
                                                               "cert_weight", "brake_weight", "belief_weight")},
     **{f"model.task.{k}": Real(0, lo_open=True, optional=True) for k in ("rollout_scale_m", "brake_scale", "dt")},
     "model.data.horizon": Int(1, MAX_T_P, optional=True),
+    **{f"model.net.{k}": Either((WIDTH, WIDTHS), optional=True) for k in ("hidden", "pool", "decoder", "belief")},  # the nets' layer sizes
     "model.data.perturbed_copies": Int(0, optional=True), "model.data.contrast_groups": Int(0, optional=True),
     "model.data.rollout_groups": Int(0, optional=True), "model.data.projections": Int(1, optional=True),
     "model.data.hard_braking": Real(0, lo_open=True, optional=True), "model.data.hard_weight": Real(0, lo_open=True, optional=True),
@@ -353,7 +361,7 @@ SURROGATE = {
     "dataset_dir": Text(), "models_dir": Text(), "seed": SEED,
     **{f"data.{k}": Int(1, MAX_SAMPLES) for k in ("dataset_windows", "plan_states", "val_dataset_windows", "val_plan_states",
                                                   "test_plan_states", "batch_size", "state_batch")},
-    "network.hidden": Int(1), "network.depth": Int(1), "network.absolute": OneOf(("", "y", "xy")),
+    "network.hidden": Int(1, MAX_WIDTH), "network.depth": Int(1, MAX_DEPTH), "network.absolute": OneOf(("", "y", "xy")),
     "module.lr": POS, "module.weight_decay": NONNEG, "module.composed": NONNEG, "data.iterates": Text(nullable=True), "data.iterate_states": Int(1, MAX_SAMPLES), "data.test_iterate_episodes": Int(1),
     "trainer.max_epochs": Int(1), "trainer.devices": Int(1), "trainer.log_every_n_steps": Int(1),
     "timing.repeats": Int(1), "timing.budget_s": POS, "timing.predictors": ListOf(OneOf(POINT_PREDICTORS)),

@@ -49,6 +49,12 @@ from planner.setup import check_window, planner_config
     ("make_dataset", "dataset.n_slots=1000", "dataset.n_slots=1000: must be an integer in [1, 50]"),
     ("surrogate", "data.plan_states=10000000", "data.plan_states=10000000: must be an integer in [1, 1000000]"),
     ("surrogate", "states.T_p=1000", "states.T_p=1000: must be an integer in [1, 200]"),
+    ("make_dataset", "scenario.followers=10000000", "scenario.followers=10000000: must be an integer in [1, 1000]"),
+    ("surrogate", "network.hidden=1000000", "network.hidden=1000000: must be an integer in [1, 4096]"),
+    ("surrogate", "network.depth=1000", "network.depth=1000: must be an integer in [1, 16]"),
+    ("distill", "model.net.hidden=1000000", "model.net.hidden=1000000: must be an integer in [1, 4096] or a list of at least 1 "
+                                            "and at most 16, each an integer in [1, 4096]"),
+    ("distill", f"model.net.decoder={[64] * 17}", "model.net.decoder=[64, 64,"),
     ("make_dataset", "dataset.episodes=abc", "dataset.episodes=abc: must be an integer in [1, 100000]"),
     ("make_dataset", "dataset.split=[0.5,0.5,0.1]", "dataset.split=[0.5, 0.5, 0.1]: must be 3 fractions in (0, 1) summing to 1"),
     ("make_dataset", "dataset.policy.p_reckless=1.5", "dataset.policy.p_reckless=1.5: must be a number in [0, 1]"),
