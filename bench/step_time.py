@@ -15,7 +15,7 @@ Sources are timed round-robin state by state, so a busy machine slows them alike
 -courteous, -interactive and -T16 rows are timed after them, round-robin among themselves); repeats pass over all the states again.
 The cost gap
 is (J_ADMM - J_IPOPT) / |J_IPOPT| on the states where neither fell back and J_IPOPT >= GAP_FLOOR (each solver's J of its
-own plan; ADMM's satisfies the dynamics only to its tol_F, so it can come out below IPOPT's).
+own plan; ADMM's satisfies the dynamics only to planner.admm.TOL_F, so it can come out below IPOPT's).
 """
 import cProfile
 import logging

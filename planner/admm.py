@@ -25,18 +25,18 @@ from planner.dynamics import Dynamics
 from planner.safety import Lin, no_lin
 from planner.zstep import ZData, ZInfo, ZKernel, ZState, stop_requested, z_update
 
+TOL_F = 1.0e-3  # ||F|| (state units) at which a solve may stop (with TOL_STEP)
+TOL_STEP = 1.0e-3  # iterate change (inf-norm) at which a solve may stop (with TOL_F)
 SOLVES = np.zeros(1, np.int64)  # ADMM solves run by compiled_solves in this process (the bench's profile reads it)
 
 
 @dataclass(frozen=True)
 class Settings:
     """The solver's settings, the `mpc.admm` node of conf/mpc/ (the one home of every value): the penalty and when
-    admm_solve stops; each value checked here, one UserError naming the key."""
+    admm_solve stops (within max_iters, at TOL_F and TOL_STEP); each value checked here, one UserError naming the key."""
 
     rho: float = rule(Real(0, lo_open=True))  # ADMM penalty (mpc.admm.rho=certified: planner.setup resolves it)
     max_iters: int = rule(Int(1, MAX_ITERS))  # ADMM iterations at most
-    tol_F: float = rule(Real(0, lo_open=True))  # ||F|| (state units) to stop at
-    tol_step: float = rule(Real(0, lo_open=True))  # iterate change (inf-norm) to stop at
 
     def __post_init__(self):
         check_fields(self, "mpc.admm")

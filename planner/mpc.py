@@ -25,7 +25,7 @@ BRAKE = -3.0  # m/s^2: deceleration of the safeguard's braking-in-lane fallback 
 @dataclass(frozen=True)
 class Settings:
     """One step's settings in SI units, data only, built from the `planner` config's `mpc` node (planner.setup adds the
-    paper's weights, the planner's linearize and the scenario's y_ref, v_ref, merge_tol, road and params): the problem, eq. (5)-(8)
+    paper's weights, the planner's linearize and the scenario's y_ref, v_ref, x_ref (lane_end), merge_tol, road and params): the problem, eq. (5)-(8)
     about one observation, and the safeguard's repair here; the solver (`admm`) and the strategy in their own nodes.
     Each value is checked where it is defined, one UserError naming the key."""
 
@@ -34,6 +34,7 @@ class Settings:
     y_ref: float  # m: the target lane's centre; a refined candidate's aim may be its own path instead, a tuple of T_p (Phi_3)
     v_ref: float  # m/s; likewise
     lane_y: float  # m: the target lane's centre, the scenario's y_ref, which no candidate's aim replaces
+    lane_end: float  # m: where the ego's lane ends, the scenario's x_ref
     merge_tol: float  # m: merged once the ego's centre is this close to lane_y (the scenario's)
     road: Road
     params: bicycle.BicycleParams

@@ -3,12 +3,12 @@ closed-loop episode of a method; used by the `planner` command, its batch worker
 from pathlib import Path
 
 from hydra.utils import get_class, get_object
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from core.jobs import MissingModel, UserError, build, job_config, sha256
 from core.validate import TRAINED_PREDICTORS
 from distill import certificate
-from planner import closed_loop, cost, mpc
+from planner import admm, closed_loop, cost, mpc
 from planner.gradients import Recording, Surrogate, WorldModel
 
 
@@ -27,12 +27,14 @@ def rho(cfg: DictConfig, scenario) -> float:
 
 def settings(cfg: DictConfig, scenario) -> mpc.Settings:
     """The MPC settings of cfg.mpc with the paper's cost weights (paper.cost), cfg.linearize and the scenario's references
-    (m, m/s), merge tolerance (m), road and bicycle parameters; each value checked where it is defined (planner.mpc.Settings, planner.strategy),
+    (m, m/s), lane end (x_ref, m), merge tolerance (m), road and bicycle parameters; each value checked where it is defined (planner.mpc.Settings, planner.strategy),
     one UserError naming the key."""
-    # as a partial, then called: objects passed to instantiate as kwargs would be turned into config nodes
-    return build(cfg.mpc, _partial_=True, admm={"rho": rho(cfg, scenario)})(
-        weights=cost.Weights(**cfg.paper.cost), linearize=cfg.linearize, y_ref=scenario.y_ref, v_ref=scenario.v_ref,
-        lane_y=scenario.y_ref, merge_tol=scenario.merge_tol, road=scenario.road, params=scenario.params)
+    node = OmegaConf.to_container(cfg.mpc, resolve=True)
+    problem = {k: v for k, v in node.items() if k not in ("admm", "strategy")}
+    return mpc.Settings(**problem, admm=admm.Settings(**{**node["admm"], "rho": rho(cfg, scenario)}),
+                        strategy=build(cfg.mpc.strategy), weights=cost.Weights(**cfg.paper.cost), linearize=cfg.linearize,
+                        y_ref=scenario.y_ref, v_ref=scenario.v_ref, lane_y=scenario.y_ref, lane_end=scenario.x_ref,
+                        merge_tol=scenario.merge_tol, road=scenario.road, params=scenario.params)
 
 
 def setup(cfg: DictConfig):

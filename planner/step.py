@@ -72,7 +72,7 @@ def solve_all(s: Settings, obs: Observation, source, starts, zstep) -> list:
             like = next((b for j, (b, _) in built.items() if b is not None and alike(starts[j].aim, start.aim)), None)
             built[k] = guarded(lambda: (build(start.aim, obs, source, None, zstep, start.plan, like), ""))
     ok = [k for k, (b, _) in built.items() if b is not None and admm.compiled(b[1])]
-    stop = lambda k: (starts[k].aim.admm.max_iters, starts[k].aim.admm.tol_F, starts[k].aim.admm.tol_step)
+    stop = lambda k: (starts[k].aim.admm.max_iters, admm.TOL_F, admm.TOL_STEP)
     joint = lambda: (dict(zip(ok, admm.compiled_solves([(*built[k][0], *stop(k)) for k in ok]))), "")
     loops = (guarded(joint)[0] or {}) if ok else {}
     rolled = guarded(lambda: (rollouts(obs, [(k, starts[k].aim.params, loops[k].it) for k in loops]), ""))[0] or {}

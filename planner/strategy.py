@@ -356,10 +356,9 @@ class ClosedLoop:
     """The closed-loop candidates (Chase) over CHASE_HORIZON steps (at least T_p): for each gap seen in the target lane
     and each of CLEARANCE (m), a policy that leans by `lean` (m) and chases the gap; for each of ACCEPT_DV (m/s) and
     each clearance, one that accepts the gap beside it; each answers the predictor's moves step by step, leaning only
-    within ALIGN (m) of its gap's middle, always able to stop before `lane_end` (m)."""
+    within ALIGN (m) of its gap's middle, always able to stop before the settings' lane_end (m)."""
 
     lean: float
-    lane_end: float
 
     def chased(self, s: Settings, obs: Observation, source, hyp=None):
         """(names (K,), Delta (BK, H), alpha (BK, H), Z (BK, 4H), values (BK, H, SLOTS, 2)) of the K closed-loop
@@ -376,7 +375,7 @@ class ClosedLoop:
         if hyp is not None:
             combos, source = combos * len(hyp), source.given(np.repeat(hyp, len(combos), 0))
         _, front, back, lean, clear, dv = zip(*combos)
-        policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, self.lane_end, unseen(s, obs.history), dv, H)
+        policy = Chase(s, obs.z0, list(zip(front, back)), lean, clear, lane_y, s.lane_end, unseen(s, obs.history), dv, H)
         return names, *source.drive(obs.history, policy, H)
 
 
@@ -410,6 +409,9 @@ class Branches:
         combos.sort(key=lambda c: -c[0])  # stable: of equal odds the first made (not yielding)
         w = np.array([c[0] for c in combos])
         return np.array([c[1] for c in combos]), w / w.sum()
+
+
+BRANCHES = Branches(p_min=0.1, most=4)  # the contingency step's: combinations of probability >= 0.1, at most 4 a step
 
 
 def merged(judged: list, w) -> list:
@@ -505,10 +507,7 @@ class Interactive:
     lean: float = rule(Real(0))  # m: towards the target lane from the current lane's centre
     merge_steps: tuple = rule(ListOf(Int(0), at_least=1))  # steps (of dt) after which a leaning candidate steers into the target lane
     horizon: int = rule(Int(1))  # steps (of dt) over which the predictor judges an open-loop candidate; at least T_p
-    lane_end: float = rule(Real())  # m: where the ego's lane ends (the scenario's x_ref): a chasing candidate can always stop before it
     trust: int | None = rule(Int(1, nullable=True))  # steps of a learned (`fitted`) predictor's rollout the verdicts read; beyond, every other car goes on at its last predicted velocity (None: all)
-    branch_p: float = rule(Real(0, 0.5, lo_open=True))  # a hypothesis combination is judged only with at least this probability (Branches)
-    branches: int = rule(Int(1))  # at most this many combinations a step (Branches)
 
     def __post_init__(self):
         check_fields(self, "mpc.strategy")
@@ -521,22 +520,17 @@ class Interactive:
     @cached_property
     def closed_loop(self) -> ClosedLoop:
         """The closed-loop family."""
-        return ClosedLoop(self.lean, self.lane_end)
-
-    @cached_property
-    def branches_of(self) -> Branches:
-        """The hypotheses every candidate is judged under."""
-        return Branches(self.branch_p, self.branches)
+        return ClosedLoop(self.lean)
 
     def judge(self, s: Settings) -> Judge:
         """The judge of both families' candidates under the settings s (its `never`: one past every horizon)."""
-        return Judge(self.lane_end, self.trust, max(self.horizon, CHASE_HORIZON, s.T_p) + 1)
+        return Judge(s.lane_end, self.trust, max(self.horizon, CHASE_HORIZON, s.T_p) + 1)
 
     def ranked(self, s: Settings, obs: Observation, warm, source):
         """Every candidate of both families, best first by the predictor's verdict (with hypotheses, merged over the
         branches: Branches, merged): (names, Delta (K, T_p), alpha (K, T_p), Z (K, 4T_p), verdicts), each in that order;
         a closed-loop candidate's plan is its most probable branch's."""
-        judge, (hyp, w) = self.judge(s), self.branches_of.of(obs, source)
+        judge, (hyp, w) = self.judge(s), BRANCHES.of(obs, source)
         names, Delta, alpha, Z = self.open_loop.plans(s, obs, warm)
         B, K = len(w), len(Z)
         tile = lambda a: np.tile(a, (B, 1))

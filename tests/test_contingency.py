@@ -101,7 +101,7 @@ def test_an_undecided_driver_is_asked_by_a_lean_never_bet_on_by_a_cut_in():
 def gapped(lane_end=120.0, v=5.0):
     """world(6, 3) with a gap behind the driver behind the ego: 14 m to the next car (room for the ego's shape), the
     ego's lane long enough to drop back to it."""
-    s = make("dense", ["gradients=cv", "mpc=interactive", f"mpc.strategy.lane_end={lane_end}"])[2]
+    s = make("dense", ["gradients=cv", "mpc=interactive", f"scenario.x_ref={lane_end}"])[2]
     k = np.arange(-7, 1)[:, None] * DT * v
     cars = [[0.0, 0.0], [6.0, 4.0], [-3.0, 4.0], [-17.0, 4.0], [-26.5, 4.0]]
     history = np.array(cars)[None] + np.stack([k[:, 0], np.zeros(8)], 1)[:, None]

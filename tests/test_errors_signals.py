@@ -376,6 +376,7 @@ MARKED_PLANNER = """
         return solve(kernel, *args)
 
     admm.typed_call = marked
+    admm.TOL_F = admm.TOL_STEP = 1e-12  # tolerances no solve reaches: each runs its max_iters
     sys.argv = ["planner", *sys.argv[1:]]
     launch.run("planner.cli")
 """
@@ -386,8 +387,8 @@ def test_a_stop_inside_a_long_compiled_solve_ends_the_run_at_once(signum, tmp_pa
     """A stop while one ADMM solve runs as one compiled call (T_p 200 and 2000 iterations that never converge: over ten
     minutes) ends the run within the call: it was handled once the call returned."""
     db, log = tmp_path / "m.db", tmp_path / "stderr"
-    args = ["gradients=cv", "scenario=two_lane", "plots=false", "mpc.T_p=200", "mpc.admm.max_iters=2000", "mpc.admm.tol_F=1e-12",
-            "mpc.admm.tol_step=1e-12", f"out_dir={tmp_path / 'out'}", f"hydra.run.dir={tmp_path / 'hydra'}"]
+    args = ["gradients=cv", "scenario=two_lane", "plots=false", "mpc.T_p=200", "mpc.admm.max_iters=2000",
+            f"out_dir={tmp_path / 'out'}", f"hydra.run.dir={tmp_path / 'hydra'}"]
     with log.open("w") as stderr:  # a file: numba's warnings while it compiles would fill a pipe nobody reads yet
         p = subprocess.Popen([sys.executable, "-c", textwrap.dedent(MARKED_PLANNER), *args], cwd=REPO, stdout=subprocess.PIPE,
                              stderr=stderr, text=True, env={**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{db}"})

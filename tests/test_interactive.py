@@ -58,7 +58,7 @@ def world(gap_ahead, gap_behind, v=5.0, lane_end=30.0):
     gap_ahead m ahead and a stream behind it, gap_behind m then every 9.5 m, all at v (too close for the safety shape's
     10.1 m: an ego that stopped would let the stream pass, but find no room in it); history at constant velocity. The
     ego's lane ends lane_end m ahead: at 30, too soon to race past the stream's front car and merge ahead of it."""
-    s = make("dense", ["gradients=cv", "mpc=interactive", f"mpc.strategy.lane_end={lane_end}"])[2]
+    s = make("dense", ["gradients=cv", "mpc=interactive", f"scenario.x_ref={lane_end}"])[2]
     k = np.arange(-7, 1)[:, None] * DT * v
     cars = [[0.0, 0.0], [gap_ahead, 4.0], [-gap_behind, 4.0], [-gap_behind - 9.5, 4.0], [-gap_behind - 19.0, 4.0]]
     history = np.array(cars)[None] + np.stack([k[:, 0], np.zeros(8)], 1)[:, None]
@@ -262,7 +262,7 @@ def test_a_gap_beyond_the_seen_cars_ends_where_an_unseen_car_may_be(front, enter
 
 def test_a_candidate_that_cannot_stop_before_the_lane_s_end_is_refused():
     s, obs = world(6.0, 3.0)
-    end = s.strategy.lane_end
+    end = s.lane_end
     H = s.strategy.horizon
     Delta, alpha, Z = track(s, obs.z0 + np.array([end - 28.0, 0, 0, 0]), np.zeros((2, H)),
                             np.array([np.full(H, 5.0), np.zeros(H)]), 1.0, K_Y)
@@ -389,7 +389,7 @@ def test_the_oracle_steps_plans_that_share_a_prefix_once_and_predicts_each_as_it
 
 def test_chase_drives_its_candidates_together_as_each_alone():
     s, obs = world(6.0, 3.0, lane_end=120.0)
-    g, lean = s.strategy, 1.9
+    lean = 1.9
     combos = [(f, b, c, np.nan) for _, f, b in gaps(s, obs.history) for c in CLEARANCE]
     combos += [(0, 0, c, dv) for dv in ACCEPT_DV for c in CLEARANCE]
     source, H = scripted(brake=3.0), 50
@@ -397,7 +397,7 @@ def test_chase_drives_its_candidates_together_as_each_alone():
     def driven(rows):
         """Delta, alpha (K, H), Z (K, 4H) and the predicted values of the candidates `rows` of combos, driven together."""
         front, back, clear, dv = zip(*[combos[k] for k in rows])
-        policy = Chase(s, obs.z0, list(zip(front, back)), [lean] * len(rows), clear, 0.0, g.lane_end, unseen(s, obs.history),
+        policy = Chase(s, obs.z0, list(zip(front, back)), [lean] * len(rows), clear, 0.0, s.lane_end, unseen(s, obs.history),
                        dv, H)
         return source.drive(obs.history, policy, H)
 
