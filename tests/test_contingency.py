@@ -2,7 +2,6 @@
 probabilities, mpc=interactive judges every candidate under each likely branch, accepts only what is safe and courteous
 in all of them and ranks by the probability-weighted merge; the oracle knows=prior gives the world's hypotheses."""
 import copy
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ from core.validate import PLANNER, check
 from data import perception
 from distill import models
 from distill.models import TorchPredictor
+from planner import strategy
 from planner.gradients import Given, Hypotheses, Source, WorldModel
 from planner.mpc import Observation
 from planner.setup import make, planner_config
@@ -83,14 +83,15 @@ def test_a_driver_seen_yielding_is_merged_ahead_of():
     assert judge.acceptable(s, judged[names[0]]) and judged[names[0]].merge < judge.never
 
 
-def test_an_undecided_driver_is_asked_by_a_lean_never_bet_on_by_a_cut_in():
+def test_an_undecided_driver_is_asked_by_a_lean_never_bet_on_by_a_cut_in(monkeypatch):
     """At 0.7 a single branch (the more probable: it yields) takes a plan that would force the driver if it is stubborn;
     the contingency step leans in, safe and courteous under both hypotheses, and merges in the yield branch."""
     s, obs = world(6.0, 3.0)
     judge = s.strategy.judge(s)
     under = [verdicts(s, obs, Hypothesised(p))[0] for p in (0.0, 1.0)]  # each hypothesis alone
-    single = replace(s, strategy=replace(s.strategy, branches=1))
-    bet = verdicts(single, obs, Hypothesised(0.7))[1][0]
+    with monkeypatch.context() as m:
+        m.setattr(strategy, "BRANCHES", Branches(strategy.BRANCHES.p_min, 1))
+        bet = verdicts(s, obs, Hypothesised(0.7))[1][0]
     assert not judge.acceptable(s, under[0][bet])  # the bet forces the stubborn driver
     names, Delta, alpha, Z, judged = s.strategy.ranked(s, obs, None, Hypothesised(0.7))
     assert all(judge.acceptable(s, u[names[0]]) for u in under) and under[1][names[0]].merge < judge.never
