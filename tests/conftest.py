@@ -28,6 +28,15 @@ def mlflow_store(tmp_path_factory):
     return os.environ["MLFLOW_TRACKING_URI"]
 
 
+@pytest.fixture(autouse=True)
+def mlflow_current(mlflow_store):
+    """Each test starts on the session's store: MLflow keeps the URI a job or an earlier test set beside the environment
+    variable that monkeypatch restores, and a test's own search_runs would read that store."""
+    import mlflow
+
+    mlflow.set_tracking_uri(os.environ["MLFLOW_TRACKING_URI"])
+
+
 @pytest.fixture()
 def store(tmp_path, monkeypatch):
     """A fresh MLflow store of the test's own (compare reads every run in a store)."""
