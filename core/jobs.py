@@ -171,8 +171,8 @@ SIGNAL_BYTES = 4096  # signals a compiled call can see arrive (one byte each) be
 
 
 def _signal_file() -> tuple[int, np.ndarray, tuple]:
-    """A memory file (non-blocking, as signal.set_wakeup_fd needs), its bytes as an array and its (inode, device): guarded makes it the
-    wakeup fd, to which Python's C-level handler writes each handled signal's number at once, one byte after another,
+    """A memory file (non-blocking, as signal.set_wakeup_fd needs), its bytes as an array and its (inode, device):
+    guarded makes it the wakeup fd, to which Python's C-level handler writes each handled signal's number at once, one byte after another,
     also while a compiled call holds the interpreter; the long compiled loops (planner.zstep.stop_requested) read
     the array, passed as an argument (a numba global is frozen as a constant), and return early."""
     fd = os.memfd_create("signals", os.MFD_CLOEXEC)
@@ -185,9 +185,9 @@ _SIGNAL_FD, SIGNALS, _SIGNAL_ID = _signal_file()  # _SIGNAL_ID (inode, device): 
 
 
 def _own_signal_file() -> None:
-    """A signal file of this process's own where its number now names another file (a Ray worker redirects its log
-    onto the low numbers after the import that made ours): set_wakeup_fd refuses a blocking one, and a log is no
-    place for signal bytes."""
+    """A signal file of this process's own where its number now names another file (a library that dup2s a log onto
+    it): set_wakeup_fd refuses a blocking one, and a log is no place for signal bytes. Not the Ray launcher's case,
+    a copy of this module's globals, which guarded's closure avoids by reaching them through _start_job."""
     global _SIGNAL_FD, SIGNALS, _SIGNAL_ID
     try:
         ours = os.fstat(_SIGNAL_FD)[1:3] == _SIGNAL_ID

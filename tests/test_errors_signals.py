@@ -343,8 +343,8 @@ def test_the_compiled_loops_see_a_stop_signal_until_its_job_ends():
 
 
 def test_a_job_whose_signal_file_number_another_file_took_still_sees_its_stop(tmp_path):
-    """A Ray worker redirects its log onto the number the import's signal file had: a job there makes its own file
-    instead of refusing to start (set_wakeup_fd: "the fd must be in non-blocking mode") or writing signals into the log."""
+    """Where a blocking log has been dup2'd onto the signal file's number, a job makes its own file instead of refusing
+    to start (set_wakeup_fd: "the fd must be in non-blocking mode") or writing signals into the log."""
     from planner.zstep import stop_requested
 
     seen = []
