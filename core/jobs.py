@@ -172,9 +172,10 @@ SIGNAL_BYTES = 4096  # signals a compiled call can see arrive (one byte each) be
 
 def _signal_file() -> tuple[int, np.ndarray, tuple]:
     """A memory file (non-blocking, as signal.set_wakeup_fd needs), its bytes as an array and its (inode, device):
-    guarded makes it the wakeup fd, to which Python's C-level handler writes each handled signal's number at once, one byte after another,
-    also while a compiled call holds the interpreter; the long compiled loops (planner.zstep.stop_requested) read
-    the array, passed as an argument (a numba global is frozen as a constant), and return early."""
+    guarded makes it the wakeup fd, to which Python's C-level handler writes each handled signal's number at once,
+    one byte after another, also while a compiled call holds the interpreter; the long compiled loops
+    (planner.zstep.stop_requested) read the array, passed as an argument (a numba global is frozen as a constant),
+    and return early."""
     fd = os.memfd_create("signals", os.MFD_CLOEXEC)
     os.ftruncate(fd, SIGNAL_BYTES)
     os.set_blocking(fd, False)
